@@ -1,0 +1,51 @@
+# The two commands: `make run` (the whole pipeline on the embedded tiny profile) and
+# `make test`. Both create .venv when it is missing or when the pinned set changed.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+TORCH := torch==2.13.0
+WAYMO := waymo-open-dataset-tf-2-12-0==1.6.7
+
+export PREFECT_HOME := $(CURDIR)/.prefect
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+export PREFECT_LOGGING_LEVEL ?= WARNING
+export DO_NOT_TRACK := 1
+export DVC_NO_ANALYTICS := 1
+export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlruns.db
+export PATH := $(CURDIR)/$(BIN):$(PATH)
+
+.PHONY: run test bench setup clean
+
+setup: $(STAMP)
+
+# The stamp depends on the lock files: a changed pin reinstalls, an unchanged one does not.
+$(STAMP): requirements.txt requirements.lock pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "open3d needs libusb-1.0-0: installing it with apt"; \
+	    apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	  else echo "warning: libusb-1.0-0 is missing and we are not root; open3d may fail to import"; fi; \
+	fi
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	# torch first, alone, so that nothing later can pull a CUDA build
+	$(BIN)/python -m pip install -q $(TORCH)
+	$(BIN)/python -m pip install -q -r requirements.txt -c requirements.lock
+	$(BIN)/python -m pip install -q --no-deps $(WAYMO)
+	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
+	$(BIN)/python -c "import torch, open3d, prefect, mlflow, dvc; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/dvc repro
+	$(BIN)/typ report
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python bench/voxelize.py --out reports
+
+clean:
+	rm -rf $(VENV) .prefect

@@ -1,0 +1,91 @@
+"""What every stage flow shares: config + MLflow run, per-scene fan-out with a progress bar,
+metrics written for DVC."""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+from prefect.futures import as_completed
+from prefect.task_runners import ThreadPoolTaskRunner
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from typ.errors import TypError
+from typ.io import write_json
+
+log = logging.getLogger("typ")
+
+
+class StageFailed(RuntimeError):
+    """A per-scene task failed; the message names the stage and the scene."""
+
+
+def per_scene(fn: Callable, items: Sequence, *, label: Callable[[object], str], stage: str,
+              retries: int = 0, **kwargs) -> list:
+    """Run ``fn(item, **kwargs)`` for every item as Prefect tasks, with a rich progress bar.
+
+    Results come back in ``items`` order. A failing item stops the stage with its name in
+    the error; bad input (TypError) is deterministic, so it is never retried.
+    """
+    wrapped = task(fn, name=f"{stage}-scene", retries=retries, retry_delay_seconds=[1, 4, 16][:retries],
+                   retry_condition_fn=_retry_unless_bad_input, cache_policy=NO_CACHE, log_prints=False)
+    futures = {wrapped.with_options(task_run_name=f"{stage}-{label(item)}").submit(item, **kwargs): i
+               for i, item in enumerate(items)}
+    results: list = [None] * len(items)
+    with Progress(TextColumn(f"[bold]{stage}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.description}"), transient=False) as bar:
+        job = bar.add_task("", total=len(items))
+        for fut in as_completed(list(futures)):
+            i = futures[fut]
+            try:
+                results[i] = fut.result()
+            except TypError:
+                raise
+            except Exception as exc:
+                raise StageFailed(f"{stage}: scene {label(items[i])} failed: {type(exc).__name__}: {exc}") from exc
+            bar.update(job, advance=1, description=label(items[i]))
+    return results
+
+
+def _retry_unless_bad_input(task, task_run, state) -> bool:
+    try:
+        state.result()
+    except TypError:
+        return False
+    except Exception:
+        return True
+    return False
+
+
+def runner(workers: int) -> ThreadPoolTaskRunner:
+    return ThreadPoolTaskRunner(max_workers=workers)
+
+
+def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
+    path = root / "metrics" / f"{stage}.json"
+    write_json(path, metrics)
+    return path
+
+
+def numeric_leaves(metrics: dict, prefix: str = "") -> dict[str, float]:
+    """Flatten nested metrics to ``a.b`` names, numbers only (for MLflow)."""
+    out = {}
+    for k, v in metrics.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(numeric_leaves(v, name + "."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[name] = v
+    return out
+
+
+class Timer:
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.seconds = time.perf_counter() - self.t0

@@ -1,0 +1,238 @@
+"""typ.formats.waymo: TFRecord CRCs, the real labels-only frame, range images on a synthetic frame."""
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from typ import geometry
+from typ.errors import TypError
+from typ.formats.waymo import crc32c, iter_tfrecord, masked_crc32c, read_waymo_frames, read_waymo_kitti_bin
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "waymo_mmdet3d_testdata"
+dataset_pb2 = pytest.importorskip("waymo_open_dataset.dataset_pb2")
+
+
+@pytest.fixture(scope="module")
+def tfrecord():
+    if not (DATA / "val.tfrecord").is_file():
+        pytest.skip("shared/data/waymo_mmdet3d_testdata is not available")
+    return DATA / "val.tfrecord"
+
+
+def _bitwise_crc32c(data: bytes) -> int:
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0x82F63B78 if crc & 1 else crc >> 1
+    return crc ^ 0xFFFFFFFF
+
+
+def test_crc32c_known_vectors():
+    # RFC 3720 (iSCSI) appendix B.4 test vectors
+    assert crc32c(b"123456789") == 0xE3069283
+    assert crc32c(bytes(32)) == 0x8A9136AA
+    assert crc32c(b"\xff" * 32) == 0x62A8AB43
+    assert crc32c(bytes(range(32))) == 0x46DD794E
+    assert crc32c(b"") == 0
+
+
+@pytest.mark.parametrize("n", [1, 3, 4, 63, 64, 65, 257, 1000, 5003])
+def test_crc32c_matches_bitwise_reference(n):
+    data = np.random.default_rng(n).integers(0, 256, n, dtype=np.uint8).tobytes()
+    assert crc32c(data) == _bitwise_crc32c(data)
+
+
+def _record(payload: bytes) -> bytes:
+    length = struct.pack("<Q", len(payload))
+    return length + struct.pack("<I", masked_crc32c(length)) + payload + struct.pack("<I", masked_crc32c(payload))
+
+
+def test_real_frame(tfrecord):
+    scenes = read_waymo_frames(tfrecord)
+    assert len(scenes) == 1
+    scene, ego = scenes[0], scenes[0].ego
+    assert scene.dataset == "waymo" and scene.scenario == "1071392229495085036_1844_790_1864_790"
+    assert scene.timestamp == "1507315488219118"
+    assert ego.points.shape == (0, 4)  # this file has labels only, no range images
+    assert len(ego.boxes) == 18
+    assert ego.box_labels.count("sign") == 17 and ego.box_labels.count("vehicle") == 1
+    assert len(set(ego.box_ids.tolist())) == 18
+    reference = json.loads((DATA / "val_laser_labels.json").read_text())[0]
+    np.testing.assert_allclose(ego.pose.ravel(), reference["vehicle_pose_4x4_row_major"], atol=1e-12)
+
+
+def test_two_records(tfrecord, tmp_path):
+    copy = tmp_path / "two.tfrecord"
+    copy.write_bytes(tfrecord.read_bytes() * 2)
+    assert [len(p) for p in iter_tfrecord(copy)] == [8140, 8140]
+    assert len(read_waymo_frames(copy)) == 2
+
+
+def _error(path) -> TypError:
+    with pytest.raises(TypError) as info:
+        list(iter_tfrecord(path))
+    return info.value
+
+
+def test_corrupt_payload_names_record_and_offset(tfrecord, tmp_path):
+    raw = bytearray(tfrecord.read_bytes() * 2)
+    second = len(raw) // 2
+    raw[second + 12 + 100] ^= 0x01
+    bad = tmp_path / "bad.tfrecord"
+    bad.write_bytes(bytes(raw))
+    err = _error(bad)
+    assert err.where == str(bad)
+    assert "record 1 at byte offset 8156" in str(err) and "payload crc" in str(err)
+    with pytest.raises(TypError):
+        read_waymo_frames(bad)
+
+
+def test_corrupt_length_header(tfrecord, tmp_path):
+    raw = bytearray(tfrecord.read_bytes())
+    raw[2] ^= 0x40
+    bad = tmp_path / "bad.tfrecord"
+    bad.write_bytes(bytes(raw))
+    err = _error(bad)
+    assert "record 0 at byte offset 0" in str(err) and "length crc" in str(err)
+
+
+@pytest.mark.parametrize("cut", [5, 100, 8150])
+def test_truncated_file(tfrecord, tmp_path, cut):
+    bad = tmp_path / "cut.tfrecord"
+    bad.write_bytes(tfrecord.read_bytes()[:cut])
+    err = _error(bad)
+    assert err.where == str(bad) and "truncated" in str(err) and "offset 0" in str(err)
+
+
+def test_payload_that_is_not_a_frame(tmp_path):
+    path = tmp_path / "junk.tfrecord"
+    path.write_bytes(_record(b"\xff\xff\xff\xff not a proto"))
+    with pytest.raises(TypError) as info:
+        read_waymo_frames(path)
+    assert "frame 0" in info.value.where and info.value.field == "payload"
+
+
+def _matrix(array: np.ndarray) -> bytes:
+    m = dataset_pb2.MatrixFloat()
+    m.data.extend(array.astype(np.float32).ravel().tolist())
+    m.shape.dims.extend(array.shape)
+    return zlib.compress(m.SerializeToString())
+
+
+FRAME_POSE = geometry.pose_to_matrix([100.0, 200.0, 3.0, 0.0, 30.0, 0.0])
+
+
+def _synthetic_frame(top_pixel_offset=(0.0, 0.0, 0.0)):
+    """FRONT: 2x4 image, min/max inclinations, laser turned 90 deg left; TOP: 3x2, listed inclinations."""
+    frame = dataset_pb2.Frame()
+    frame.context.name = "synthetic"
+    frame.timestamp_micros = 42
+    frame.pose.transform.extend(FRAME_POSE.ravel().tolist())
+
+    front = frame.context.laser_calibrations.add()
+    front.name = dataset_pb2.LaserName.FRONT
+    front.beam_inclination_min, front.beam_inclination_max = -0.2, 0.2
+    extrinsic = geometry.pose_to_matrix([4.0, 0.0, 1.0, 0.0, 90.0, 0.0])
+    front.extrinsic.transform.extend(extrinsic.ravel().tolist())
+    image = np.zeros((2, 4, 4))
+    image[0, 1, :2] = [10.0, 0.5]
+    image[1, 2, :2] = [20.0, 2.0]
+    laser = frame.lasers.add()
+    laser.name = dataset_pb2.LaserName.FRONT
+    laser.ri_return1.range_image_compressed = _matrix(image)
+
+    top = frame.context.laser_calibrations.add()
+    top.name = dataset_pb2.LaserName.TOP
+    top.beam_inclinations.extend([-0.3, 0.0, 0.05])
+    top.extrinsic.transform.extend(np.eye(4).ravel().tolist())
+    first, second = np.zeros((3, 2, 4)), np.zeros((3, 2, 4))
+    first[2, 0, :2] = [5.0, 0.1]
+    second[0, 1, :2] = [7.0, 0.2]
+    pixel_pose = np.zeros((3, 2, 6))
+    pixel_pose[..., 2] = np.radians(30.0)  # [roll, pitch, yaw, x, y, z]: the frame pose ...
+    pixel_pose[..., 3:] = np.array([100.0, 200.0, 3.0]) + top_pixel_offset  # ... moved in the world
+    laser = frame.lasers.add()
+    laser.name = dataset_pb2.LaserName.TOP
+    laser.ri_return1.range_image_compressed = _matrix(first)
+    laser.ri_return1.range_image_pose_compressed = _matrix(pixel_pose)
+    laser.ri_return2.range_image_compressed = _matrix(second)
+    return frame
+
+
+def _read(tmp_path, frame):
+    path = tmp_path / "synthetic.tfrecord"
+    path.write_bytes(_record(frame.SerializeToString()))
+    return read_waymo_frames(path)[0].ego
+
+
+def test_range_images_to_points(tmp_path):
+    points = _read(tmp_path, _synthetic_frame()).points
+    c1, s1 = np.cos(0.1), np.sin(0.1)
+    q = np.sqrt(0.5)
+    expected = np.array([
+        # TOP (laser name 1) first; rows are listed inclinations reversed: row 2 -> -0.3.
+        # Column 0 of 2 looks along azimuth +90 deg; the pixel pose equals the frame pose.
+        [0.0, 5 * np.cos(0.3), -5 * np.sin(0.3), np.tanh(0.1)],
+        # second return, row 0 -> 0.05, column 1 of 2 -> azimuth -90 deg
+        [0.0, -7 * np.cos(0.05), 7 * np.sin(0.05), np.tanh(0.2)],
+        # FRONT: rows 0, 1 -> inclinations +0.1, -0.1 (uniform over [-0.2, 0.2]); the laser is
+        # turned +90 deg, so column 1 (laser azimuth -45 deg) looks along vehicle azimuth +45 deg
+        [4 + 10 * c1 * q, 10 * c1 * q, 1 + 10 * s1, np.tanh(0.5)],
+        [4 + 20 * c1 * q, -20 * c1 * q, 1 - 20 * s1, np.tanh(2.0)],
+    ])
+    assert points.dtype == np.float32
+    np.testing.assert_allclose(points, expected, atol=1e-5)
+
+
+def test_top_pixel_pose_moves_points(tmp_path):
+    still = _read(tmp_path, _synthetic_frame()).points
+    moved = _read(tmp_path, _synthetic_frame(top_pixel_offset=(1.0, 0.0, 0.0))).points
+    # a pixel captured 1 m further along world x lands R_frame^T (1, 0, 0) away in the vehicle frame
+    shift = FRAME_POSE[:3, :3].T @ [1.0, 0.0, 0.0]
+    np.testing.assert_allclose(moved[:2, :3] - still[:2, :3], [shift, shift], atol=1e-5)
+    np.testing.assert_allclose(moved[2:], still[2:])
+
+
+def test_inclination_count_must_match_rows(tmp_path):
+    frame = _synthetic_frame()
+    top = next(c for c in frame.context.laser_calibrations if c.name == dataset_pb2.LaserName.TOP)
+    top.beam_inclinations.append(0.1)
+    with pytest.raises(TypError) as info:
+        _read(tmp_path, frame)
+    assert "beam_inclinations" in info.value.field and "frame 0" in info.value.where
+
+
+def test_corrupt_range_image(tmp_path):
+    frame = _synthetic_frame()
+    frame.lasers[0].ri_return1.range_image_compressed = b"not zlib"
+    with pytest.raises(TypError) as info:
+        _read(tmp_path, frame)
+    assert info.value.field == "lasers[FRONT].ri_return1"
+
+
+def test_kitti_format_bins():
+    bins = sorted((DATA / "kitti_format" / "velodyne").glob("*.bin"))
+    if len(bins) != 2:
+        pytest.skip("shared/data/waymo_mmdet3d_testdata/kitti_format is not available")
+    for path in bins:
+        points = read_waymo_kitti_bin(path)
+        assert points.shape == (800, 4) and points.dtype == np.float32
+        assert 0.0 <= points[:, 3].min() and points[:, 3].max() <= 1.0
+        raw = np.fromfile(path, dtype=np.float32).reshape(-1, 6)
+        np.testing.assert_array_equal(points[:, :3], raw[:, :3])
+
+
+def test_kitti_format_bin_wrong_dtype(tmp_path):
+    path = tmp_path / "f64.bin"
+    rng = np.random.default_rng(3)
+    path.write_bytes(rng.uniform(-40, 40, (50, 6)).astype(np.float64).tobytes())
+    with pytest.raises(TypError) as info:
+        read_waymo_kitti_bin(path)
+    assert info.value.where == str(path) and info.value.field == "dtype"
+    assert "float32 little-endian" in str(info.value)

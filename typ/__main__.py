@@ -1,0 +1,5 @@
+import sys
+
+from typ.cli import main
+
+sys.exit(main())

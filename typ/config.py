@@ -1,0 +1,283 @@
+"""Typed configuration: ``params.yaml`` -> one frozen dataclass per stage.
+
+``params.yaml`` holds ``profile: tiny | paper`` and one block per stage. The profile picks
+the defaults from ``typ/profiles.yaml`` (``tiny``: minutes on 2 CPU cores; ``paper``: TYP §4
+scale); each block in ``params.yaml`` overrides them key by key. An unknown key, a wrong
+type or an impossible value fails at load time with the dotted field name and what was
+expected, e.g. ``params.yaml: voxelize.grid.shape: expected 3 positive integers``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from typ.errors import TypError
+
+PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
+PROFILES = ("tiny", "paper")
+DOMAINS = ("source", "target", "real_cav")
+
+
+# ---------------------------------------------------------------- stage blocks
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """The voxel grid of TYP §3.2, in the sensor frame (metres); shape is (H, W, C) = (x, y, z)."""
+
+    x_range: tuple[float, float]
+    y_range: tuple[float, float]
+    z_range: tuple[float, float]
+    shape: tuple[int, int, int]
+
+    def check(self, where: str, name: str) -> None:
+        for axis in ("x_range", "y_range", "z_range"):
+            lo, hi = getattr(self, axis)
+            if not lo < hi:
+                raise TypError(where, f"{name}.{axis}", "[min, max] with min < max", [lo, hi])
+        if any(n <= 0 for n in self.shape):
+            raise TypError(where, f"{name}.shape", "3 positive integers (H, W, C)", list(self.shape))
+
+
+@dataclass(frozen=True)
+class SimulateConfig:
+    """Embedded simulator: which scenarios of which sensor domain go to which split."""
+
+    seed: int
+    frames: int
+    agents_min: int
+    agents_max: int
+    azimuth_step_deg: float
+    comm_range: float
+    dt: float
+    #: domain -> split -> number of scenarios, e.g. {"target": {"train": 4, "test": 2}}
+    scenarios: dict[str, dict[str, int]]
+    workers: int
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        _positive(where, f"{name}.frames", self.frames)
+        if not 1 <= self.agents_min <= self.agents_max <= 8:
+            raise TypError(where, f"{name}.agents_min/agents_max", "1 <= agents_min <= agents_max <= 8",
+                           [self.agents_min, self.agents_max])
+        _positive(where, f"{name}.azimuth_step_deg", self.azimuth_step_deg)
+        _positive(where, f"{name}.comm_range", self.comm_range)
+        _positive(where, f"{name}.dt", self.dt)
+        _positive(where, f"{name}.workers", self.workers)
+        for domain, splits in self.scenarios.items():
+            if domain not in DOMAINS:
+                raise TypError(where, f"{name}.scenarios.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
+            for split, count in splits.items():
+                if count < 0:
+                    raise TypError(where, f"{name}.scenarios.{domain}.{split}", "a count >= 0", count)
+
+
+@dataclass(frozen=True)
+class VoxelizeConfig:
+    """Voxelize stage: every agent view under ``input`` onto ``grid``, stored per scene under ``out``."""
+
+    grid: GridConfig
+    input: str
+    out: str
+    workers: int
+
+    def check(self, where: str, name: str) -> None:
+        self.grid.check(where, f"{name}.grid")
+        _positive(where, f"{name}.workers", self.workers)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Where runs are logged; ``MLFLOW_TRACKING_URI`` in the environment wins over ``uri``."""
+
+    experiment: str
+    uri: str
+
+    def check(self, where: str, name: str) -> None:
+        if not self.experiment:
+            raise TypError(where, f"{name}.experiment", "a non-empty experiment name", self.experiment)
+
+
+@dataclass(frozen=True)
+class Config:
+    profile: Literal["tiny", "paper"]
+    tracking: TrackingConfig
+    simulate: SimulateConfig
+    voxelize: VoxelizeConfig
+    source: str = field(default="params.yaml", compare=False)
+
+    #: stage name -> attribute holding its block
+    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize")
+
+    def block(self, stage: str):
+        if stage not in self.STAGES:
+            raise TypError(self.source, "stage", f"one of {list(self.STAGES)}", stage)
+        return getattr(self, stage)
+
+
+def _positive(where: str, name: str, value) -> None:
+    if not value > 0:
+        raise TypError(where, name, "a value > 0", value)
+
+
+# ---------------------------------------------------------------- loading
+
+
+def load_config(path: str | Path = "params.yaml", *, overrides: dict | None = None) -> Config:
+    """Read ``path``, merge it over its profile's defaults, and return a checked :class:`Config`."""
+    path = Path(path)
+    where = str(path)
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise TypError(where, "file", "a params.yaml in the project root (run typ from there)") from None
+    except yaml.YAMLError as exc:
+        raise TypError(where, "yaml", "valid YAML", str(exc).splitlines()[0]) from None
+    if not isinstance(raw, dict):
+        raise TypError(where, "<top level>", "a mapping of stage blocks", type(raw).__name__)
+    return config_from_dict(raw, where=where, overrides=overrides)
+
+
+def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict | None = None) -> Config:
+    raw = _deep_merge(raw, overrides or {})
+    profile = raw.get("profile", "tiny")
+    if profile not in PROFILES:
+        raise TypError(where, "profile", f"one of {list(PROFILES)}", profile)
+    defaults = profile_defaults(profile)
+    merged = _deep_merge(defaults, {k: v for k, v in raw.items() if k != "profile"}, where=where)
+    merged["profile"] = profile
+    cfg = _build(Config, merged, where, "")
+    cfg = dataclasses.replace(cfg, source=where)
+    for name in ("tracking",) + Config.STAGES:
+        getattr(cfg, name).check(where, name)
+    return cfg
+
+
+def profile_defaults(profile: str) -> dict:
+    data = yaml.safe_load(PROFILES_FILE.read_text())
+    if profile not in data:
+        raise TypError(PROFILES_FILE, "profile", f"one of {sorted(data)}", profile)
+    return data[profile]
+
+
+def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "") -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value, where=where, prefix=f"{prefix}{key}.")
+        else:
+            out[key] = value
+    return out
+
+
+def _build(tp, value, where: str, name: str):
+    """Convert ``value`` to type ``tp`` or raise TypError naming ``name``."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise TypError(where, name or "<top level>", f"a mapping for {tp.__name__}", value)
+        hints = typing.get_type_hints(tp)
+        fields = {f.name: f for f in dataclasses.fields(tp) if f.init and f.name != "source"}
+        unknown = sorted(set(value) - set(fields))
+        if unknown:
+            raise TypError(where, _join(name, unknown[0]), f"one of the known keys {sorted(fields)}",
+                           "an unknown key")
+        kwargs = {}
+        for fname, f in fields.items():
+            if fname not in value:
+                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                    raise TypError(where, _join(name, fname), "a value (key missing)")
+                continue
+            kwargs[fname] = _build(hints[fname], value[fname], where, _join(name, fname))
+        return tp(**kwargs)
+    if origin is Literal:
+        allowed = typing.get_args(tp)
+        if value not in allowed:
+            raise TypError(where, name, f"one of {list(allowed)}", value)
+        return value
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise TypError(where, name, f"a list of {len(args)} {_tname(args[0])}s", value)
+        return tuple(_build(a, v, where, f"{name}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin is list:
+        (arg,) = typing.get_args(tp)
+        if not isinstance(value, list):
+            raise TypError(where, name, f"a list of {_tname(arg)}", value)
+        return [_build(arg, v, where, f"{name}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        karg, varg = typing.get_args(tp)
+        if not isinstance(value, dict):
+            raise TypError(where, name, f"a mapping of {_tname(karg)} to {_tname(varg)}", value)
+        return {_build(karg, k, where, name): _build(varg, v, where, _join(name, str(k))) for k, v in value.items()}
+    if origin in (typing.Union, types.UnionType):
+        errors = []
+        for arg in typing.get_args(tp):
+            try:
+                return _build(arg, value, where, name)
+            except TypError as exc:
+                errors.append(exc.expected)
+        raise TypError(where, name, " or ".join(errors), value)
+    if tp is type(None):
+        if value is not None:
+            raise TypError(where, name, "null", value)
+        return None
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise TypError(where, name, "true or false", value)
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypError(where, name, "an integer", value)
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypError(where, name, "a number", value)
+        if value != value or value in (float("inf"), float("-inf")):
+            raise TypError(where, name, "a finite number", value)
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise TypError(where, name, "a string", value)
+        return value
+    if tp is Any:
+        return value
+    raise TypeError(f"config type {tp!r} for {name} is not supported")
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _tname(tp) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def flatten(obj, prefix: str = "") -> dict[str, Any]:
+    """Dotted-name view of a config (``voxelize.grid.shape`` -> ``[128, 128, 8]``), for MLflow."""
+    if dataclasses.is_dataclass(obj):
+        obj = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj) if f.name != "source"}
+    out: dict[str, Any] = {}
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            out.update(flatten(v, _join(prefix, str(k))))
+    else:
+        out[prefix] = list(obj) if isinstance(obj, tuple) else obj
+    return out
+
+
+def as_dict(obj) -> dict:
+    """Plain JSON-able dict of a config block (tuples become lists)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: as_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj) if f.name != "source"}
+    if isinstance(obj, dict):
+        return {k: as_dict(v) for k, v in obj.items()}
+    if isinstance(obj, (tuple, list)):
+        return [as_dict(v) for v in obj]
+    return obj

@@ -1,0 +1,57 @@
+"""Validated reading of raw float32 point clouds (KITTI ``.bin``, nuScenes ``.pcd.bin``, mmdet3d Waymo bins).
+
+These files carry no header: a wrong column count, a truncated copy or a float64 dump
+reads as plausible-looking garbage with ``np.fromfile``. :func:`read_bin` checks what
+can be checked and raises :class:`~typ.errors.TypError` naming the file and the field.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from typ.errors import TypError
+
+#: Coordinates beyond this (metres) are not LiDAR returns: the bytes are not float32 LE.
+MAX_ABS_COORDINATE = 1e5
+
+
+def read_bin(path: str | os.PathLike, columns: int) -> np.ndarray:
+    """Read a headerless little-endian float32 cloud -> ``(N, columns)`` float32, N >= 1.
+
+    The first three columns are x, y, z in metres (the file's own sensor frame); the
+    rest are passed through unchanged. Raises TypError for a missing or unreadable
+    file, a size that is not a whole number of points, an empty cloud, coordinates
+    beyond ``MAX_ABS_COORDINATE`` (wrong dtype or byte order) and NaN/Inf values.
+    """
+    p = Path(path)
+    if columns < 3:
+        raise TypError(p, "columns", "at least 3 (x, y, z)", columns)
+    record = 4 * columns
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise TypError(p, "file", "an existing point cloud file", "no such file") from None
+    except OSError as exc:
+        raise TypError(p, "file", "a readable point cloud file", f"{type(exc).__name__}: {exc.strerror}") from None
+    if len(raw) == 0:
+        raise TypError(p, "points", f"at least one point ({record} bytes)", "empty file (0 bytes)")
+    if len(raw) % record:
+        raise TypError(p, "size", f"a multiple of {record} bytes ({columns} float32 per point); "
+                       "the file is truncated or has a different column count",
+                       f"{len(raw)} bytes ({len(raw) % record} bytes left over)")
+    cloud = np.frombuffer(raw, dtype="<f4").reshape(-1, columns).astype(np.float32)
+    xyz = cloud[:, :3]
+    with np.errstate(invalid="ignore"):
+        absurd = np.isfinite(xyz) & (np.abs(xyz) > MAX_ABS_COORDINATE)
+    if absurd.any():
+        raise TypError(p, "dtype", f"float32 little-endian with |x|, |y|, |z| <= {MAX_ABS_COORDINATE:g} m",
+                       f"{int(absurd.any(axis=1).sum())} of {len(cloud)} points beyond that "
+                       f"(max {float(np.abs(xyz[absurd]).max()):.3g}); the file may be float64 or big-endian")
+    bad_rows = ~np.isfinite(cloud).all(axis=1)
+    if bad_rows.any():
+        bad_cols = np.flatnonzero(~np.isfinite(cloud).all(axis=0)).tolist()
+        raise TypError(p, "points", "finite values (no NaN/Inf)",
+                       f"{int(bad_rows.sum())} of {len(cloud)} points with NaN/Inf in columns {bad_cols}")
+    return cloud

@@ -1,0 +1,121 @@
+"""KITTI 3D object frames: ``<root>/<split>/{velodyne|velodyne_reduced, calib, label_2}/NNNNNN.*``.
+
+Points are the Velodyne cloud (x forward, y left, z up, metres; reflectance in [0, 1]).
+Labels are in the rectified camera-2 frame (x right, y down, z forward) with ``(x, y, z)``
+the centre of the box's bottom face; they are moved into the Velodyne frame with
+``inv(R0_rect @ Tr_velo_to_cam)`` (both padded to 4x4): centre_cam = (x, y - h/2, z),
+yaw_lidar = -rotation_y - pi/2, size (l, w, h). ``DontCare`` rows are skipped.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from typ import geometry
+from typ.errors import TypError
+from typ.formats.binfile import read_bin
+from typ.scene import AgentView, Scene
+
+_CALIB_SHAPES = {"R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+_LABEL_FIELDS = 15  # type truncated occluded alpha x1 y1 x2 y2 h w l x y z rotation_y (+ score)
+
+
+def read_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """KITTI object calib -> ``{name: float64 matrix}``; ``R0_rect`` (3, 3), ``Tr_velo_to_cam`` (3, 4) required.
+
+    Other keys (``P0``..``P3``, ``Tr_imu_to_velo``) come back as flat float64 vectors
+    reshaped to (3, 4) when they have 12 numbers.
+    """
+    p = Path(path)
+    try:
+        lines = p.read_text(encoding="ascii").splitlines()
+    except FileNotFoundError:
+        raise TypError(p, "file", "an existing KITTI calib file", "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TypError(p, "file", "a readable text calib file", type(exc).__name__) from None
+    calib: dict[str, np.ndarray] = {}
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        if not sep:
+            raise TypError(p, f"line {number}", "'NAME: v1 v2 ...'", line[:80])
+        try:
+            values = np.array([float(v) for v in rest.split()], dtype=np.float64)
+        except ValueError:
+            raise TypError(p, key.strip(), "numbers", rest.strip()[:80]) from None
+        calib[key.strip()] = values.reshape(3, 4) if values.size == 12 else values
+    for key, shape in _CALIB_SHAPES.items():
+        if key not in calib:
+            raise TypError(p, key, f"a line '{key}: ' with {shape[0] * shape[1]} numbers", "missing")
+        if calib[key].size != shape[0] * shape[1]:
+            raise TypError(p, key, f"{shape[0] * shape[1]} numbers", calib[key].size)
+        calib[key] = calib[key].reshape(shape)
+        if not np.isfinite(calib[key]).all():
+            raise TypError(p, key, "finite numbers", calib[key].ravel().tolist())
+    return calib
+
+
+def velo_to_rect(calib: dict[str, np.ndarray]) -> np.ndarray:
+    """(4, 4) float64 Velodyne -> rectified camera-2: ``R0_rect @ Tr_velo_to_cam``, padded."""
+    r0 = np.eye(4)
+    r0[:3, :3] = calib["R0_rect"]
+    tr = np.eye(4)
+    tr[:3, :] = calib["Tr_velo_to_cam"]
+    return r0 @ tr
+
+
+def read_labels(path: str | os.PathLike, calib: dict[str, np.ndarray]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """label_2 file -> ``(K, 7)`` float64 boxes in the Velodyne frame and K lower-case class names."""
+    p = Path(path)
+    try:
+        lines = p.read_text(encoding="ascii").splitlines()
+    except FileNotFoundError:
+        raise TypError(p, "file", "an existing KITTI label file", "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TypError(p, "file", "a readable text label file", type(exc).__name__) from None
+    # the matrix is affine but not exactly rigid (R0_rect, calibration noise): use a general inverse
+    rect_to_velo = np.linalg.inv(velo_to_rect(calib))
+    boxes, labels = [], []
+    for number, line in enumerate(lines, start=1):
+        parts = line.split()
+        if not parts or parts[0] == "DontCare":
+            continue
+        if len(parts) not in (_LABEL_FIELDS, _LABEL_FIELDS + 1):
+            raise TypError(p, f"line {number}", f"{_LABEL_FIELDS} fields (type ... rotation_y [score])", len(parts))
+        try:
+            h, w, l, x, y, z, ry = (float(v) for v in parts[8:15])
+        except ValueError:
+            raise TypError(p, f"line {number}", "numbers in fields 9-15 (h w l x y z rotation_y)",
+                           parts[8:15]) from None
+        if min(h, w, l) <= 0:
+            raise TypError(p, f"line {number}", "positive h, w, l", (h, w, l))
+        centre = rect_to_velo @ np.array([x, y - h / 2.0, z, 1.0])
+        boxes.append([*centre[:3], l, w, h, float(geometry.wrap_angle(-ry - np.pi / 2.0))])
+        labels.append(parts[0].lower())
+    return np.array(boxes, dtype=np.float64).reshape(-1, 7), tuple(labels)
+
+
+def read_kitti_frame(root: str | os.PathLike, frame_id: int | str, split: str = "training") -> Scene:
+    """One KITTI frame as a single-agent Scene (agent ``"ego"``, pose identity = the Velodyne frame).
+
+    Points come from ``velodyne/`` or, when that frame is absent, ``velodyne_reduced/``.
+    Without ``label_2/`` (the testing split) the frame has no boxes and calib is not needed.
+    Box ids are the label rows' order (0, 1, ...) after DontCare rows are dropped.
+    """
+    base = Path(root) / split
+    name = f"{int(frame_id):06d}" if str(frame_id).isdigit() else str(frame_id)
+    candidates = [base / folder / f"{name}.bin" for folder in ("velodyne", "velodyne_reduced")]
+    bin_path = next((c for c in candidates if c.is_file()), None)
+    if bin_path is None:
+        raise TypError(base, "velodyne", f"{name}.bin under velodyne/ or velodyne_reduced/", "not found")
+    points = read_bin(bin_path, 4)
+    label_path = base / "label_2" / f"{name}.txt"
+    boxes, labels = np.zeros((0, 7)), ()
+    if label_path.parent.is_dir():
+        boxes, labels = read_labels(label_path, read_calib(base / "calib" / f"{name}.txt"))
+    view = AgentView(agent_id="ego", points=points, pose=np.eye(4), boxes=boxes, box_labels=labels,
+                     box_ids=np.arange(len(boxes)), where=str(bin_path))
+    return Scene(scenario=name, timestamp=name, agents={"ego": view}, dataset="kitti", split=split)

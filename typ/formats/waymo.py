@@ -1,0 +1,295 @@
+"""Waymo Open Dataset frames from TFRecord files, without TensorFlow.
+
+TFRecord: each record is ``<u64 length><u32 masked crc32c(length bytes)><payload><u32 masked
+crc32c(payload)>``, little-endian; TensorFlow masks a CRC as ``((crc >> 15) | (crc << 17)) +
+0xa282ead8`` (mod 2^32). Both CRCs are checked. CRC-32C (Castagnoli, reflected polynomial
+0x82F63B78) is computed with numpy over many lanes at once, then the lanes are combined.
+
+Frames: each payload is a ``waymo.open_dataset.Frame`` (``dataset_pb2`` from the
+``waymo-open-dataset-tf-2-12-0`` wheel, installed without TensorFlow). Points and boxes are
+in the **vehicle frame** (x forward, y left, z up), which plays the sensor frame of the single
+agent ``"ego"``; its pose is ``frame.pose.transform`` (vehicle -> world). Intensity is
+``tanh(raw intensity)`` (OpenPCDet's and mmdet3d's ``norm_intensity`` convention), since raw
+Waymo intensities are unbounded.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import struct
+import zlib
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from typ.errors import TypError
+from typ.formats.binfile import read_bin
+from typ.scene import AgentView, Scene
+
+_POLY = 0x82F63B78
+_MASK_DELTA = 0xA282EAD8
+_U32 = 0xFFFFFFFF
+
+
+def _byte_table() -> np.ndarray:
+    crc = np.arange(256, dtype=np.uint32)
+    for _ in range(8):
+        crc = np.where(crc & 1, (crc >> 1) ^ np.uint32(_POLY), crc >> 1).astype(np.uint32)
+    return crc
+
+
+_TABLE = _byte_table()
+_TABLE_LIST = _TABLE.tolist()
+
+
+def _raw_crc(lanes: np.ndarray) -> np.ndarray:
+    """CRC register after feeding each row of ``lanes`` (L, m) uint8, starting from 0, no final xor."""
+    crc = np.zeros(len(lanes), dtype=np.uint32)
+    for col in lanes.T:
+        crc = _TABLE[(crc ^ col) & 0xFF] ^ (crc >> 8)
+    return crc
+
+
+def _zero_shift_tables(m: int) -> list[list[int]]:
+    """Byte tables of the linear map "advance the register over m zero bytes"."""
+    basis = _raw_crc_from(np.uint32(1) << np.arange(32, dtype=np.uint32), m)
+    tables = []
+    for k in range(4):
+        table = np.zeros(256, dtype=np.uint32)
+        for bit in range(8):
+            table[(np.arange(256) >> bit) & 1 == 1] ^= basis[8 * k + bit]
+        tables.append(table.tolist())
+    return tables
+
+
+def _raw_crc_from(states: np.ndarray, m: int) -> np.ndarray:
+    crc = states.astype(np.uint32)
+    for _ in range(m):
+        crc = _TABLE[crc & 0xFF] ^ (crc >> 8)
+    return crc
+
+
+def crc32c(data: bytes) -> int:
+    """CRC-32C of ``data`` (initial value and final xor 0xFFFFFFFF); crc32c(b"123456789") == 0xE3069283."""
+    n = len(data)
+    if n < 64:
+        crc = _U32
+        for byte in data:
+            crc = _TABLE_LIST[(crc ^ byte) & 0xFF] ^ (crc >> 8)
+        return crc ^ _U32
+    buf = np.frombuffer(data, dtype=np.uint8).copy()
+    # For a reflected CRC, starting from 0xFFFFFFFF equals starting from 0 with the first
+    # 4 bytes inverted; starting from 0, leading zero bytes change nothing, so the data can
+    # be zero-padded at the front and cut into equal lanes.
+    buf[:4] ^= 0xFF
+    lanes_n = max(1, min(4096, n // 256))
+    m = -(-n // lanes_n)
+    padded = np.zeros(lanes_n * m, dtype=np.uint8)
+    padded[lanes_n * m - n:] = buf
+    lane_crcs = _raw_crc(padded.reshape(lanes_n, m)).tolist()
+    t0, t1, t2, t3 = _zero_shift_tables(m)
+    crc = 0
+    for lane in lane_crcs:  # CRC(A || B) = shift_|B|(CRC(A)) ^ CRC(B) when starting from 0
+        crc = t0[crc & 0xFF] ^ t1[(crc >> 8) & 0xFF] ^ t2[(crc >> 16) & 0xFF] ^ t3[crc >> 24] ^ lane
+    return crc ^ _U32
+
+
+def masked_crc32c(data: bytes) -> int:
+    """TensorFlow's masked CRC-32C, as stored in TFRecord files."""
+    crc = crc32c(data)
+    return ((((crc >> 15) | (crc << 17)) & _U32) + _MASK_DELTA) & _U32
+
+
+def iter_tfrecord(path: str | os.PathLike) -> Iterator[bytes]:
+    """Yield each record's payload; TypError (file, record index, byte offset) on a bad CRC or truncation."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise TypError(p, "file", "an existing TFRecord file", "no such file") from None
+    except OSError as exc:
+        raise TypError(p, "file", "a readable TFRecord file", f"{type(exc).__name__}: {exc.strerror}") from None
+    offset, index = 0, 0
+    while offset < len(raw):
+        where = f"record {index} at byte offset {offset}"
+        if len(raw) - offset < 12:
+            raise TypError(p, where, "a 12-byte record header (length, length crc)",
+                           f"{len(raw) - offset} bytes left (truncated file)")
+        length_bytes = raw[offset:offset + 8]
+        (length,), (length_crc,) = struct.unpack("<Q", length_bytes), struct.unpack("<I", raw[offset + 8:offset + 12])
+        if masked_crc32c(length_bytes) != length_crc:
+            raise TypError(p, f"{where}: length crc", f"masked crc32c {masked_crc32c(length_bytes):#010x}",
+                           f"{length_crc:#010x} (corrupt header)")
+        start = offset + 12
+        if len(raw) - start < length + 4:
+            raise TypError(p, where, f"{length} payload bytes + 4 crc bytes",
+                           f"{len(raw) - start} bytes left (truncated file)")
+        payload = raw[start:start + length]
+        (payload_crc,) = struct.unpack("<I", raw[start + length:start + length + 4])
+        expected = masked_crc32c(payload)
+        if expected != payload_crc:
+            raise TypError(p, f"{where}: payload crc", f"masked crc32c {expected:#010x}",
+                           f"{payload_crc:#010x} (corrupt payload of {length} bytes at offset {start})")
+        yield payload
+        offset, index = start + length + 4, index + 1
+
+
+def read_waymo_frames(path: str | os.PathLike) -> list[Scene]:
+    """Every Frame in a Waymo tfrecord as a single-agent Scene (agent ``"ego"``, vehicle frame).
+
+    points: (N, 4) float32 ``[x, y, z, tanh(intensity)]`` from the range images of every laser,
+    first and second returns, pixels with range > 0. A frame without range images (labels-only
+    files such as mmdet3d's test frame) gets a (0, 4) cloud.
+    boxes: ``laser_labels`` (K, 7) ``[center_x, center_y, center_z, length, width, height, heading]``;
+    labels are the type names lower-cased without ``TYPE_`` (vehicle, pedestrian, sign, cyclist);
+    box ids are a stable 63-bit hash of the label's string id.
+    """
+    from waymo_open_dataset import dataset_pb2, label_pb2
+
+    scenes = []
+    for index, payload in enumerate(iter_tfrecord(path)):
+        where = f"{path} (frame {index})"
+        try:
+            frame = dataset_pb2.Frame.FromString(payload)
+        except Exception as exc:  # protobuf's DecodeError has no stable import path across versions
+            raise TypError(where, "payload", "a serialized waymo.open_dataset.Frame", type(exc).__name__) from None
+        pose = _transform(where, "pose.transform", frame.pose.transform)
+        boxes = np.array([[lb.box.center_x, lb.box.center_y, lb.box.center_z,
+                           lb.box.length, lb.box.width, lb.box.height, lb.box.heading]
+                          for lb in frame.laser_labels], dtype=np.float64).reshape(-1, 7)
+        labels = tuple(label_pb2.Label.Type.Name(lb.type).removeprefix("TYPE_").lower() for lb in frame.laser_labels)
+        ids = np.array([_stable_id(lb.id) for lb in frame.laser_labels], dtype=np.int64)
+        view = AgentView(agent_id="ego", points=_frame_points(where, frame, pose, dataset_pb2), pose=pose,
+                         boxes=boxes, box_labels=labels, box_ids=ids, where=where)
+        scenes.append(Scene(scenario=frame.context.name, timestamp=str(frame.timestamp_micros),
+                            agents={"ego": view}, dataset="waymo"))
+    return scenes
+
+
+def read_waymo_kitti_bin(path: str | os.PathLike) -> np.ndarray:
+    """mmdet3d's Waymo-to-KITTI ``.bin`` (float32 x6: x, y, z, intensity, elongation, timestamp µs).
+
+    Returns (N, 4) float32 ``[x, y, z, tanh(intensity)]`` in the vehicle frame.
+    """
+    cloud = read_bin(path, 6)
+    return np.concatenate([cloud[:, :3], np.tanh(cloud[:, 3:4])], axis=1).astype(np.float32)
+
+
+def _stable_id(text: str) -> int:
+    return int.from_bytes(hashlib.blake2b(text.encode("utf-8"), digest_size=8).digest(), "little") & (2**63 - 1)
+
+
+def _transform(where: str, field: str, values) -> np.ndarray:
+    m = np.array(values, dtype=np.float64)
+    if m.shape != (16,) or not np.isfinite(m).all():
+        raise TypError(where, field, "16 finite numbers (4x4 row-major)", m.shape)
+    return m.reshape(4, 4)
+
+
+def _matrix_float(where: str, field: str, compressed: bytes, dataset_pb2, dims: int) -> np.ndarray:
+    """zlib-compressed MatrixFloat -> float32 array of its shape (``dims`` axes)."""
+    try:
+        mat = dataset_pb2.MatrixFloat.FromString(zlib.decompress(compressed))
+    except Exception as exc:  # zlib.error or protobuf DecodeError
+        raise TypError(where, field, "a zlib-compressed MatrixFloat", type(exc).__name__) from None
+    shape = tuple(mat.shape.dims)
+    if len(shape) != dims or np.prod(shape) != len(mat.data):
+        raise TypError(where, field, f"a {dims}-d matrix whose shape matches its data",
+                       f"shape {shape}, {len(mat.data)} values")
+    return np.array(mat.data, dtype=np.float32).reshape(shape)
+
+
+def _frame_points(where: str, frame, frame_pose: np.ndarray, dataset_pb2) -> np.ndarray:
+    """All lasers' returns in the vehicle frame, in Waymo's order (calibrations sorted by laser name)."""
+    lasers = {laser.name: laser for laser in frame.lasers}
+    clouds = [np.zeros((0, 4), dtype=np.float32)]
+    top = dataset_pb2.LaserName.TOP
+    for calib in sorted(frame.context.laser_calibrations, key=lambda c: c.name):
+        laser = lasers.get(calib.name)
+        if laser is None:
+            continue
+        name = dataset_pb2.LaserName.Name.Name(calib.name)
+        pixel_pose = None
+        if calib.name == top and laser.ri_return1.range_image_pose_compressed:
+            pixel_pose = _pixel_poses(_matrix_float(where, f"lasers[{name}].ri_return1.range_image_pose_compressed",
+                                                    laser.ri_return1.range_image_pose_compressed, dataset_pb2, 3))
+        extrinsic = _transform(where, f"laser_calibrations[{name}].extrinsic", calib.extrinsic.transform)
+        for ret_name in ("ri_return1", "ri_return2"):
+            ret = getattr(laser, ret_name)
+            field = f"lasers[{name}].{ret_name}"
+            if ret.range_image_compressed:
+                image = _matrix_float(where, field, ret.range_image_compressed, dataset_pb2, 3)
+            elif len(ret.range_image.data):  # the deprecated uncompressed field
+                image = np.array(ret.range_image.data, dtype=np.float32).reshape(tuple(ret.range_image.shape.dims))
+            else:
+                continue
+            if image.shape[2] < 2:
+                raise TypError(where, field, "range image channels [range, intensity, ...]", image.shape)
+            height = image.shape[0]
+            if len(calib.beam_inclinations):
+                inclinations = np.array(calib.beam_inclinations, dtype=np.float64)
+                if len(inclinations) != height:
+                    raise TypError(where, f"laser_calibrations[{name}].beam_inclinations",
+                                   f"{height} values, one per range image row", len(inclinations))
+            else:
+                inclinations = uniform_inclinations(calib.beam_inclination_min, calib.beam_inclination_max, height)
+            if pixel_pose is not None and pixel_pose.shape[:2] != image.shape[:2]:
+                raise TypError(where, f"lasers[{name}].ri_return1.range_image_pose_compressed",
+                               f"shape {image.shape[:2]} + (6,)", pixel_pose.shape)
+            clouds.append(range_image_to_points(image, inclinations=inclinations, extrinsic=extrinsic,
+                                                pixel_pose=pixel_pose, frame_pose=frame_pose))
+    return np.concatenate(clouds, axis=0)
+
+
+def uniform_inclinations(low: float, high: float, height: int) -> np.ndarray:
+    """(height,) beam inclinations (radians, ascending) for a laser calibrated by min/max only.
+
+    Pixel centres: ``low + (i + 0.5) / height * (high - low)``, as Waymo's ``compute_inclination``.
+    """
+    return low + (np.arange(height) + 0.5) / height * (high - low)
+
+
+def range_image_to_points(image: np.ndarray, *, inclinations: np.ndarray, extrinsic: np.ndarray,
+                          pixel_pose: np.ndarray | None = None, frame_pose: np.ndarray | None = None) -> np.ndarray:
+    """One return's range image -> (M, 4) float32 ``[x, y, z, tanh(intensity)]`` in the vehicle frame.
+
+    image: (H, W, C) float32, channel 0 range (m), channel 1 intensity; pixels with range <= 0
+    are dropped. inclinations: (H,) ascending, as in the calibration; row 0 of the image is the
+    highest beam. extrinsic: (4, 4) laser -> vehicle. Column c looks along azimuth
+    ``(2 (W - c - 0.5) / W - 1) pi`` in the laser frame, corrected by the extrinsic's yaw so
+    that the middle of the image faces the vehicle's x axis.
+    pixel_pose: (H, W, 4, 4) vehicle -> world at each pixel's capture time (TOP laser; rolling
+    shutter), with frame_pose (4, 4) vehicle -> world at the frame time.
+    """
+    height, width = image.shape[:2]
+    rng = image[..., 0].astype(np.float64)
+    incl = np.asarray(inclinations, dtype=np.float64)[::-1][:, None]
+    az_correction = np.arctan2(extrinsic[1, 0], extrinsic[0, 0])
+    azimuth = ((np.arange(width, 0, -1) - 0.5) / width * 2.0 - 1.0) * np.pi - az_correction
+    local = np.stack([np.cos(azimuth)[None, :] * np.cos(incl) * rng,
+                      np.sin(azimuth)[None, :] * np.cos(incl) * rng,
+                      np.sin(incl) * rng], axis=-1)
+    points = local @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+    if pixel_pose is not None:
+        if frame_pose is None:
+            raise TypError(None, "frame_pose", "the frame's vehicle pose when pixel poses are given", None)
+        points = np.einsum("hwij,hwj->hwi", pixel_pose[..., :3, :3], points) + pixel_pose[..., :3, 3]
+        world_to_vehicle = np.linalg.inv(frame_pose)
+        points = points @ world_to_vehicle[:3, :3].T + world_to_vehicle[:3, 3]
+    keep = rng > 0
+    return np.concatenate([points[keep], np.tanh(image[..., 1][keep].astype(np.float64))[:, None]],
+                          axis=1).astype(np.float32)
+
+
+def _pixel_poses(raw: np.ndarray) -> np.ndarray:
+    """(H, W, 6) ``[roll, pitch, yaw, x, y, z]`` -> (H, W, 4, 4), rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    roll, pitch, yaw = (raw[..., k].astype(np.float64) for k in range(3))
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    m = np.zeros(raw.shape[:2] + (4, 4))
+    m[..., 0, 0], m[..., 0, 1], m[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    m[..., 1, 0], m[..., 1, 1], m[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    m[..., 2, 0], m[..., 2, 1], m[..., 2, 2] = -sp, cp * sr, cp * cr
+    m[..., :3, 3] = raw[..., 3:6]
+    m[..., 3, 3] = 1.0
+    return m

@@ -1,0 +1,102 @@
+"""MLflow logging for stage runs: params (dotted names), metrics, artifacts, git commit.
+
+The store is a sqlite database in the project (``sqlite:///mlruns.db``) unless
+``MLFLOW_TRACKING_URI`` says otherwise; artifacts go beside it under ``mlartifacts/``.
+A stage run started while ``TYP_PARENT_RUN_ID`` is set nests under that pipeline run.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import subprocess
+from pathlib import Path
+from typing import Iterator
+
+from typ.config import Config, flatten, as_dict
+from typ.io import hash_obj
+
+PARENT_ENV = "TYP_PARENT_RUN_ID"
+log = logging.getLogger(__name__)
+
+
+def tracking_uri(cfg: Config, root: Path) -> str:
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or cfg.tracking.uri
+    prefix = "sqlite:///"
+    if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
+        uri = prefix + str((root / uri[len(prefix):]).resolve())
+    return uri
+
+
+def git_commit(root: Path) -> str:
+    """HEAD's hash, with ``-dirty`` when tracked files changed; ``unknown`` outside git."""
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
+                             check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, check=True).stdout.strip()
+        return sha + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _experiment_id(mlflow, name: str, root: Path) -> str:
+    exp = mlflow.get_experiment_by_name(name)
+    if exp is not None:
+        return exp.experiment_id
+    try:
+        return mlflow.create_experiment(name, artifact_location=(root / "mlartifacts").resolve().as_uri())
+    except Exception:  # another process created it first
+        return mlflow.get_experiment_by_name(name).experiment_id
+
+
+@contextlib.contextmanager
+def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["StageRun"]:
+    """One MLflow run for one stage execution: params of the stage's block, tags, then the body."""
+    import mlflow
+
+    root = Path(root)
+    mlflow.set_tracking_uri(tracking_uri(cfg, root))
+    exp_id = _experiment_id(mlflow, cfg.tracking.experiment, root)
+    block = cfg.block(stage) if stage in cfg.STAGES else cfg
+    params = {f"{stage}.{k}": v for k, v in flatten(block).items()} if stage in cfg.STAGES else flatten(block)
+    tags = {
+        "typ.stage": stage,
+        "typ.profile": cfg.profile,
+        "typ.params_hash": hash_obj(as_dict(block))[:16],
+        "mlflow.source.git.commit": git_commit(root),
+        "dvc.stage": stage,
+    }
+    nested = mlflow.active_run() is not None
+    parent = os.environ.get(PARENT_ENV)
+    if parent and not nested:
+        tags["mlflow.parentRunId"] = parent
+    with mlflow.start_run(experiment_id=exp_id, run_name=stage, tags=tags, nested=nested) as run:
+        mlflow.log_params({k: _short(v) for k, v in params.items()})
+        mlflow.log_param("profile", cfg.profile)
+        yield StageRun(mlflow, run.info.run_id)
+
+
+class StageRun:
+    """Thin handle so tasks never import mlflow themselves."""
+
+    def __init__(self, mlflow, run_id: str):
+        self._mlflow = mlflow
+        self.run_id = run_id
+
+    def metrics(self, values: dict[str, float], step: int | None = None) -> None:
+        clean = {k: float(v) for k, v in values.items() if isinstance(v, (int, float))}
+        if clean:
+            self._mlflow.log_metrics(clean, step=step)
+
+    def artifact(self, path: str | Path, subdir: str | None = None) -> None:
+        path = Path(path)
+        if path.is_dir():
+            self._mlflow.log_artifacts(str(path), artifact_path=subdir)
+        elif path.exists():
+            self._mlflow.log_artifact(str(path), artifact_path=subdir)
+
+
+def _short(value) -> str:
+    text = str(value)
+    return text if len(text) <= 500 else text[:497] + "..."
