@@ -3,6 +3,7 @@ metrics written for DVC."""
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -13,8 +14,10 @@ from prefect.futures import as_completed
 from prefect.task_runners import ThreadPoolTaskRunner
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from typ.config import Config
 from typ.errors import TypError
-from typ.io import write_json
+from typ.io import remove_stale_temporaries, write_json
+from typ.tracking import stage_run
 
 log = logging.getLogger("typ")
 
@@ -89,3 +92,33 @@ class Timer:
 
     def __exit__(self, *exc):
         self.seconds = time.perf_counter() - self.t0
+
+
+def per_scene_stage(stage: str, cfg: Config, root: Path, *, out: Path, plan: Callable[[], tuple[list, list[Path]]],
+                    work: Callable, label: Callable[[object], str], summarize: Callable[[list], dict],
+                    **work_kwargs) -> dict:
+    """The shape every per-scene stage shares, inside one MLflow run.
+
+    Remove temporaries a killed run left under ``out``; ``plan()`` gives the items to do and
+    the stale outputs (whose inputs are gone) to delete; ``work(item, **work_kwargs)`` runs per
+    item as a Prefect task and returns a dict with ``scenario`` and ``skipped`` (None or the
+    reason); ``summarize(results)`` gives the stage metrics, written to ``metrics/<stage>.json``
+    for DVC and logged to MLflow.
+    """
+    with stage_run(stage, cfg, root=root) as run:
+        with Timer() as timer:
+            cleaned = remove_stale_temporaries(out) if out.exists() else 0
+            items, stale = plan()
+            for path in stale:
+                log.info("%s: removing %s: its input is gone", stage, path)
+                shutil.rmtree(path) if path.is_dir() else path.unlink()
+            results = per_scene(work, items, label=label, stage=stage, **work_kwargs)
+        metrics = summarize(results)
+        metrics.update(removed_stale=len(stale), removed_temporaries=cleaned, seconds_total=round(timer.seconds, 3))
+        for r in results:
+            if r["skipped"]:
+                log.info("%s: skipped %s (%s)", stage, r["scenario"], r["skipped"])
+        path = write_metrics(stage, metrics, root)
+        run.metrics(numeric_leaves(metrics))
+        run.artifact(path)
+    return metrics

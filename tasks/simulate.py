@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import logging
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +21,6 @@ from typ.formats.opv2v import write_scene
 from typ.io import atomic_path, hash_obj, read_json_or_none, write_json
 from typ.sim import simulate_scenario
 
-log = logging.getLogger(__name__)
 MANIFEST = "_typ.json"
 #: bump when the simulator's output for the same job changes, so old scenarios are redone
 SIM_FORMAT = 1
@@ -102,12 +99,6 @@ def run_job(job: ScenarioJob, out: Path) -> dict:
                                     "typ_version": __version__})
     return {"scenario": job.name, "domain": job.domain, "split": job.split, "skipped": None,
             "seconds": time.perf_counter() - t0, **counts}
-
-
-def remove_stale(paths: list[Path]) -> None:
-    for p in paths:
-        log.info("removing scenario %s: no longer in params", p)
-        shutil.rmtree(p)
 
 
 def summarize(results: list[dict]) -> dict:
