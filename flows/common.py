@@ -95,8 +95,8 @@ class Timer:
 
 
 def per_scene_stage(stage: str, cfg: Config, root: Path, *, out: Path, plan: Callable[[], tuple[list, list[Path]]],
-                    work: Callable, label: Callable[[object], str], summarize: Callable[[list], dict],
-                    **work_kwargs) -> dict:
+                    work: Callable, work_kwargs: dict, label: Callable[[object], str],
+                    summarize: Callable[[list], dict]) -> dict:
     """The shape every per-scene stage shares, inside one MLflow run.
 
     Remove temporaries a killed run left under ``out``; ``plan()`` gives the items to do and
