@@ -181,3 +181,22 @@ def test_listing_and_dataset_reader(tmp_path):
     assert table.num_rows == 8
     assert sorted(set(zip(*[table.column(c).to_pylist() for c in ("dataset", "split", "scene")]))) == [
         ("colwaymo", "train", "w0"), ("opv2v", "test", "s2"), ("opv2v", "train", "s0"), ("opv2v", "train", "s1")]
+
+
+def test_sparse_read_densifies_to_the_dense_read(tmp_path):
+    from typ.store import densify, read_scene_indices, read_scene_voxels, write_scene_voxels
+    from typ.voxel import Grid
+
+    grid = Grid((-4.0, 4.0), (-4.0, 4.0), (-1.0, 1.0), (8, 8, 4))
+    rng = np.random.default_rng(3)
+    recs = {("1", "000000"): (rng.random((8, 8, 4)) < 0.2, rng.random((8, 8, 1)) < 0.3),
+            ("2", "000000"): (np.zeros((8, 8, 4), bool), np.zeros((8, 8, 1), bool))}
+    path = write_scene_voxels(tmp_path / "s.parquet", recs, grid=grid, input_hash="h")
+    g, h, sparse = read_scene_indices(path)
+    _, _, dense = read_scene_voxels(path)
+    assert g == grid and h == "h" and list(sparse) == list(recs)
+    for key, (occ, box) in recs.items():
+        assert sparse[key][0].shape == (occ.sum(), 3) and sparse[key][1].shape == (box.sum(), 2)
+        d_occ, d_box = densify(sparse[key], grid)
+        assert np.array_equal(d_occ, occ) and np.array_equal(d_box, box)
+        assert np.array_equal(dense[key][0], occ)

@@ -67,6 +67,7 @@ _WRITE_OPTIONS = dict(compression="zstd", use_dictionary=["scene", "agent_id", "
 _NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
 
 Record = tuple[np.ndarray, np.ndarray]
+SparseRecord = tuple[np.ndarray, np.ndarray]
 
 
 def scene_path(root: str | os.PathLike, dataset: str, split: str, scene: str) -> Path:
@@ -227,10 +228,12 @@ def stored_input_hash(path: str | os.PathLike) -> str | None:
     return _metadata(path, _read_schema(path))[1]
 
 
-def read_scene_voxels(path: str | os.PathLike) -> tuple[Grid, str, dict[tuple[str, str], Record]]:
-    """Read a scene file: ``(grid, input_hash, {(agent_id, timestamp): (occupancy, box_map)})``.
+def read_scene_indices(path: str | os.PathLike) -> tuple[Grid, str, dict[tuple[str, str], SparseRecord]]:
+    """Read a scene file without densifying: ``(grid, input_hash, {(agent_id, timestamp): (occ, box)})``.
 
-    occupancy: (H, W, C) bool and box_map: (H, W, 1) bool on ``grid``, in file order.
+    occ: (M, 3) intp voxel indices (i, j, k); box: (K, 2) intp BEV cell indices (i, j).
+    Training code keeps these in memory (a few hundred KB per view on the paper grid) and
+    densifies one batch at a time with :func:`densify`.
     A missing, corrupt or foreign file, or indices outside the grid, raise TypError naming it.
     """
     path = Path(path)
@@ -252,17 +255,32 @@ def read_scene_voxels(path: str | os.PathLike) -> tuple[Grid, str, dict[tuple[st
         flat[c] = (values, offsets)
     agents = table.column("agent_id").to_pylist()
     stamps = table.column("timestamp").to_pylist()
-    out: dict[tuple[str, str], Record] = {}
+    out: dict[tuple[str, str], SparseRecord] = {}
     for r, key in enumerate(zip(agents, stamps)):
-        parts = {}
-        for c, (values, offsets) in flat.items():
-            parts[c] = values[offsets[r]:offsets[r + 1]]
+        parts = {c: values[offsets[r]:offsets[r + 1]] for c, (values, offsets) in flat.items()}
         if not (len(parts["occ_ix"]) == len(parts["occ_iy"]) == len(parts["occ_iz"])
                 and len(parts["box_ix"]) == len(parts["box_iy"])) or key in out:
             raise TypError(path, f"row {r} {key}", "equal-length index lists, one row per (agent_id, timestamp)", None)
-        occupancy = np.zeros((H, W, C), dtype=bool)
-        occupancy[parts["occ_ix"], parts["occ_iy"], parts["occ_iz"]] = True
-        boxes = np.zeros((H, W, 1), dtype=bool)
-        boxes[parts["box_ix"], parts["box_iy"], 0] = True
-        out[key] = (occupancy, boxes)
+        out[key] = (np.stack([parts["occ_ix"], parts["occ_iy"], parts["occ_iz"]], axis=1),
+                    np.stack([parts["box_ix"], parts["box_iy"]], axis=1))
     return grid, input_hash, out
+
+
+def densify(record: SparseRecord, grid: Grid) -> Record:
+    """Sparse indices -> (occupancy (H, W, C) bool, box_map (H, W, 1) bool)."""
+    occ, box = record
+    occupancy = np.zeros(grid.shape, dtype=bool)
+    occupancy[occ[:, 0], occ[:, 1], occ[:, 2]] = True
+    boxes = np.zeros((*grid.shape[:2], 1), dtype=bool)
+    boxes[box[:, 0], box[:, 1], 0] = True
+    return occupancy, boxes
+
+
+def read_scene_voxels(path: str | os.PathLike) -> tuple[Grid, str, dict[tuple[str, str], Record]]:
+    """Read a scene file: ``(grid, input_hash, {(agent_id, timestamp): (occupancy, box_map)})``.
+
+    occupancy: (H, W, C) bool and box_map: (H, W, 1) bool on ``grid``, in file order.
+    A missing, corrupt or foreign file, or indices outside the grid, raise TypError naming it.
+    """
+    grid, input_hash, sparse = read_scene_indices(path)
+    return grid, input_hash, {key: densify(rec, grid) for key, rec in sparse.items()}
