@@ -18,12 +18,16 @@ import numpy as np
 from typ import __version__
 from typ.config import SimulateConfig, as_dict
 from typ.formats.opv2v import write_scene
-from typ.io import atomic_path, hash_obj, read_json_or_none, write_json
+from typ.io import atomic_path, code_digest, hash_obj, read_json_or_none, write_json
+import typ.formats.opv2v
+import typ.formats.pcd
+import typ.geometry
+import typ.sim
 from typ.sim import simulate_scenario
 
 MANIFEST = "_typ.json"
-#: bump when the simulator's output for the same job changes, so old scenarios are redone
-SIM_FORMAT = 1
+#: the simulator's and the writer's source: a change to either redoes every scenario
+_CODE = code_digest(typ.sim, typ.geometry, typ.formats.opv2v, typ.formats.pcd)
 
 
 @dataclass(frozen=True)
@@ -48,7 +52,7 @@ class ScenarioJob:
         return out / self.domain / self.split / self.name
 
     def key(self) -> str:
-        return hash_obj({"job": as_dict(self.__dict__), "format": SIM_FORMAT})
+        return hash_obj({"job": as_dict(self.__dict__), "code": _CODE})
 
 
 def plan_jobs(cfg: SimulateConfig) -> list[ScenarioJob]:

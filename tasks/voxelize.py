@@ -18,11 +18,16 @@ import numpy as np
 
 from typ.config import GridConfig
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene
-from typ.io import hash_files
+import typ.formats.opv2v
+import typ.store
+import typ.voxel
+from typ.io import code_digest, hash_files
 from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels
 from typ.voxel import Grid, box_map, voxelize
 
 log = logging.getLogger(__name__)
+#: the reader's, voxelizer's and store's source: a change to any redoes every scene
+_CODE = code_digest(typ.formats.opv2v, typ.voxel, typ.store)
 
 
 @dataclass(frozen=True)
@@ -48,7 +53,8 @@ def plan_inputs(root: Path) -> list[ScenarioInput]:
 
 def input_hash(item: ScenarioInput, grid: Grid) -> str:
     files = sorted(p for p in item.folder.rglob("*") if p.is_file() and not p.name.startswith("."))
-    return hash_files(files, extra=f"{[str(p.relative_to(item.folder)) for p in files]}|{grid.digest()}")
+    names = [str(p.relative_to(item.folder)) for p in files]
+    return hash_files(files, extra=f"{names}|{grid.digest()}|{_CODE}")
 
 
 def stale_outputs(items: list[ScenarioInput], out: Path) -> list[Path]:

@@ -338,3 +338,16 @@ def test_domain_spec_lookup():
     assert domain_spec("source", azimuth_step_deg=0.2).sensor.n_azimuths == 1800
     with pytest.raises(TypError, match="domain"):
         domain_spec("waymo")
+
+
+def test_ego_is_the_agent_opencood_picks_on_disk(tmp_path):
+    """OpenCOOD's ego is the agent folder that sorts first; the simulator's ego must be that one."""
+    from typ.formats.opv2v import list_agents, write_scene
+
+    for seed in range(6):
+        scene = simulate_scenario(domain="real_cav", seed=seed, n_frames=1, n_agents=4, azimuth_step_deg=2.0,
+                                  scenario=f"s{seed}")[0]
+        ids = list(scene.agents)
+        assert ids == sorted(ids, key=str)
+        folder = write_scene(scene, tmp_path)
+        assert list_agents(folder)[0] == scene.ego_id

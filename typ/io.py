@@ -115,3 +115,16 @@ def read_json_or_none(path: str | os.PathLike):
         return json.loads(Path(path).read_text())
     except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
         return None
+
+
+def code_digest(*modules) -> str:
+    """sha256 of the source files of ``modules`` (a package counts with all its ``.py`` files).
+
+    Part of every per-scene cache key, so that a change to the code that produced a stored
+    output redoes it even when its inputs and params did not change.
+    """
+    files = []
+    for mod in modules:
+        path = Path(mod.__file__)
+        files.extend(sorted(path.parent.glob("*.py")) if path.name == "__init__.py" else [path])
+    return hash_files(files)[:16]

@@ -94,6 +94,9 @@ def simulate_traffic(town: Town, rng: np.random.Generator, *, n_frames: int, dt:
     # CARLA-like actor ids: increasing with random gaps, then shuffled so the agents' ids
     # aren't simply the smallest.
     ids = rng.permutation(int(rng.integers(100, 600)) + np.cumsum(rng.integers(1, 10, m))).astype(np.int64)
+    # OpenCOOD (and typ.formats.opv2v) take the agent folder that sorts first, as a string, as
+    # the ego: hand the agents their ids in that order so the ego on disk is the ego here.
+    ids[:n_agents] = sorted(ids[:n_agents], key=str)
     return Traffic(
         ids=ids, labels=tuple(plan.labels) + town.parked_labels,
         sizes=np.concatenate([np.array(plan.sizes).reshape(-1, 3), town.parked_sizes]),

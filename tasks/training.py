@@ -1,0 +1,119 @@
+"""What every training stage shares: seeded batches, checkpoints, resume, divergence checks.
+
+- Batches are a pure function of ``(seed, step)`` (:func:`batch_rng`), so a run resumed from
+  a checkpoint draws exactly the batches an uninterrupted run would have drawn.
+- Checkpoints are ``<dir>/step_<NNNNNNNN>.pt``, written to a temporary name and renamed into
+  place; the newest complete one is where a crashed run resumes. The last ``keep`` are kept.
+- A non-finite loss or gradient norm stops training with :class:`TrainingDiverged`; the last
+  good checkpoint stays on disk and no broken model is written.
+"""
+from __future__ import annotations
+
+import io
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from typ.io import write_bytes
+
+CKPT = re.compile(r"^step_(\d{8})\.pt$")
+
+
+class TrainingDiverged(RuntimeError):
+    """Loss or gradients became NaN/Inf (or exploded); the last good checkpoint is kept."""
+
+
+def batch_rng(seed: int, step: int, stream: int = 0) -> np.random.Generator:
+    """The generator for one step's batch: independent of how many steps ran before."""
+    return np.random.default_rng([seed, stream, step])
+
+
+def seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+
+
+def checkpoints(directory: Path) -> list[tuple[int, Path]]:
+    found = []
+    if directory.is_dir():
+        for p in directory.iterdir():
+            m = CKPT.match(p.name)
+            if m:
+                found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def save_checkpoint(directory: Path, step: int, state: dict, *, keep: int = 2) -> Path:
+    buf = io.BytesIO()
+    torch.save({"step": step, **state}, buf)
+    path = directory / f"step_{step:08d}.pt"
+    write_bytes(path, buf.getvalue())
+    for _, old in checkpoints(directory)[:-keep]:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def load_latest(directory: Path) -> dict | None:
+    found = checkpoints(directory)
+    if not found:
+        return None
+    return torch.load(found[-1][1], map_location="cpu", weights_only=False)
+
+
+@dataclass
+class LoopResult:
+    steps_run: int
+    resumed_from: int
+    last: dict[str, float]
+
+
+def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, float]],
+             get_state: Callable[[], dict], set_state: Callable[[dict], None], checkpoint_dir: Path,
+             checkpoint_every: int, log_fn: Callable[[dict[str, float], int], None] | None = None,
+             grad_norm_limit: float = 1e6) -> LoopResult:
+    """Run ``step_fn(step)`` for steps ``[start, total_steps)``, resuming from the newest checkpoint.
+
+    step_fn returns scalars to log (must include ``loss``; may include ``grad_norm``).
+    get_state/set_state give and restore everything a resume needs (models, optimizers).
+    """
+    start = 0
+    saved = load_latest(checkpoint_dir)
+    if saved is not None:
+        set_state(saved)
+        start = int(saved["step"])
+    last: dict[str, float] = {}
+    with Progress(TextColumn(f"[bold]{name}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.description}")) as bar:
+        task = bar.add_task("", total=total_steps, completed=start)
+        for step in range(start, total_steps):
+            values = step_fn(step)
+            bad = [k for k, v in values.items() if not math.isfinite(v)]
+            if bad or values.get("grad_norm", 0.0) > grad_norm_limit:
+                kept = checkpoints(checkpoint_dir)
+                where = f"step_{kept[-1][0]:08d}.pt" if kept else "no checkpoint yet"
+                raise TrainingDiverged(f"{name}: step {step}: {', '.join(bad) or 'grad_norm'} = "
+                                       f"{[values[k] for k in bad] or values.get('grad_norm')}; "
+                                       f"stopped, last good checkpoint: {where}")
+            last = values
+            if log_fn is not None:
+                log_fn(values, step)
+            done = step + 1
+            if done % checkpoint_every == 0 or done == total_steps:
+                save_checkpoint(checkpoint_dir, done, get_state())
+            bar.update(task, advance=1, description=f"loss {values['loss']:.4f}")
+    return LoopResult(total_steps - start, start, last)
+
+
+def grad_norm(parameters) -> float:
+    norms = [p.grad.detach().norm() for p in parameters if p.grad is not None]
+    return float(torch.linalg.vector_norm(torch.stack(norms))) if norms else 0.0
+
+
+def steps_for(epochs: int, n_items: int, batch_size: int) -> int:
+    return max(1, epochs * math.ceil(n_items / batch_size))
