@@ -41,6 +41,9 @@ class BEVVQVAE(nn.Module):
         block_out_channels: one entry per level, ``len - 1`` downsamplings by 2;
         num_codes: codebook size; norm_num_groups must divide every block width."""
         super().__init__()
+        self.config = {"in_channels": in_channels, "latent_channels": latent_channels,
+                       "block_out_channels": list(block_out_channels), "num_codes": num_codes,
+                       "layers_per_block": layers_per_block, "norm_num_groups": norm_num_groups}
         levels = len(block_out_channels)
         self.net = VQModel(in_channels=in_channels, out_channels=in_channels,
                            down_block_types=("DownEncoderBlock2D",) * levels,
@@ -51,6 +54,11 @@ class BEVVQVAE(nn.Module):
                            mid_block_add_attention=False)
         self.net.quantize.beta = 1.0  # Eq. 1: codebook and commitment terms weigh the same
         self.downsample = 2 ** (levels - 1)
+
+    @classmethod
+    def from_config(cls, config: dict) -> "BEVVQVAE":
+        """Rebuild from :attr:`config` (weights are loaded separately with ``load_state_dict``)."""
+        return cls(**{**config, "block_out_channels": tuple(config["block_out_channels"])})
 
     def encode_pre_quant(self, x: torch.Tensor) -> torch.Tensor:
         """E: (B, C, H, W) -> x^f (B, c, h, w)."""

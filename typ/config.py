@@ -93,6 +93,129 @@ class VoxelizeConfig:
 
 
 @dataclass(frozen=True)
+class AutoencoderConfig:
+    """One VQ-VAE of TYP §3.2 (x or y): widths per level (``len - 1`` halvings), code size."""
+
+    block_out_channels: tuple[int, ...]
+    latent_channels: int
+    num_codes: int
+    norm_num_groups: int
+    gamma: float
+    epochs: int
+
+    def check(self, where: str, name: str) -> None:
+        if len(self.block_out_channels) < 1 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+            raise TypError(where, f"{name}.block_out_channels",
+                           f"positive widths divisible by norm_num_groups={self.norm_num_groups}",
+                           list(self.block_out_channels))
+        for key in ("latent_channels", "num_codes", "norm_num_groups", "epochs"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+        if self.gamma < 0:
+            raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0 (0 is plain BCE)", self.gamma)
+
+
+@dataclass(frozen=True)
+class VQVAEStageConfig:
+    """Stage ``vqvae``: E_x,Q_x,G_x and E_y,Q_y,G_y trained on the target domain's ego views."""
+
+    x: AutoencoderConfig
+    y: AutoencoderConfig
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    threshold: float
+    input: str
+    dataset: str
+    train_split: str
+    eval_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        self.x.check(where, f"{name}.x")
+        self.y.check(where, f"{name}.y")
+        if len(self.x.block_out_channels) != len(self.y.block_out_channels):
+            raise TypError(where, f"{name}.y.block_out_channels",
+                           "as many levels as x (x^f and y^f must share one latent resolution)",
+                           list(self.y.block_out_channels))
+        for key in ("batch_size", "lr", "checkpoint_every"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+        if not 0 < self.threshold < 1:
+            raise TypError(where, f"{name}.threshold", "a probability in (0, 1)", self.threshold)
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """ε_θ's UNet: widths per level (latents are halved ``len - 1`` times), time embedding."""
+
+    block_out_channels: tuple[int, ...]
+    layers_per_block: int
+    cross_attention_dim: int
+    attention_head_dim: int
+    norm_num_groups: int
+    time_embedding: Literal["sinusoidal", "fourier"]
+
+    def check(self, where: str, name: str) -> None:
+        if len(self.block_out_channels) < 2 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+            raise TypError(where, f"{name}.block_out_channels",
+                           f">= 2 positive widths divisible by norm_num_groups={self.norm_num_groups}",
+                           list(self.block_out_channels))
+        for key in ("layers_per_block", "cross_attention_dim", "attention_head_dim", "norm_num_groups"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+
+
+@dataclass(frozen=True)
+class PostprocessConfig:
+    """TYP §4.1: thresholds low/high chosen from ``candidates`` on the validation split."""
+
+    noise_std: float
+    candidates: tuple[float, ...]
+
+    def check(self, where: str, name: str) -> None:
+        if self.noise_std < 0:
+            raise TypError(where, f"{name}.noise_std", "a standard deviation >= 0", self.noise_std)
+        if not self.candidates or any(not 0 < c < 1 for c in self.candidates):
+            raise TypError(where, f"{name}.candidates", "probabilities in (0, 1)", list(self.candidates))
+
+
+@dataclass(frozen=True)
+class Stage1Config:
+    """Stage ``stage1`` (TYP Eq. 4): P(x|y) as a latent diffusion model on the target's ego views."""
+
+    unet: UNetConfig
+    schedule: Literal["constant", "linear", "quadratic", "cosine", "sigmoid", "hyperbolic", "time_dependent", "ramp"]
+    train_timesteps: int
+    epochs: int
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    sampler: Literal["ddim", "ddpm", "dpmsolver++", "unipc"]
+    sample_steps: int
+    eta: float
+    postprocess: PostprocessConfig
+    eval_views: int
+    input: str
+    vqvae: str
+    dataset: str
+    train_split: str
+    val_split: str
+    eval_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        self.unet.check(where, f"{name}.unet")
+        self.postprocess.check(where, f"{name}.postprocess")
+        for key in ("train_timesteps", "epochs", "batch_size", "lr", "checkpoint_every", "eval_views"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+        if not 1 <= self.sample_steps <= self.train_timesteps:
+            raise TypError(where, f"{name}.sample_steps", f"an integer in [1, train_timesteps={self.train_timesteps}]",
+                           self.sample_steps)
+        if self.eta < 0 or (self.eta and self.sampler != "ddim"):
+            raise TypError(where, f"{name}.eta", "0, or >= 0 with sampler ddim", self.eta)
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """Where runs are logged; ``MLFLOW_TRACKING_URI`` in the environment wins over ``uri``."""
 
@@ -110,10 +233,12 @@ class Config:
     tracking: TrackingConfig
     simulate: SimulateConfig
     voxelize: VoxelizeConfig
+    vqvae: VQVAEStageConfig
+    stage1: Stage1Config
     source: str = field(default="params.yaml", compare=False)
 
-    #: stage name -> attribute holding its block
-    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize")
+    #: stage name -> attribute holding its block, in pipeline order
+    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1")
 
     def block(self, stage: str):
         if stage not in self.STAGES:
@@ -203,6 +328,10 @@ def _build(tp, value, where: str, name: str):
         return value
     if origin is tuple:
         args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            if not isinstance(value, (list, tuple)):
+                raise TypError(where, name, f"a list of {_tname(args[0])}s", value)
+            return tuple(_build(args[0], v, where, f"{name}[{i}]") for i, v in enumerate(value))
         if not isinstance(value, (list, tuple)) or len(value) != len(args):
             raise TypError(where, name, f"a list of {len(args)} {_tname(args[0])}s", value)
         return tuple(_build(a, v, where, f"{name}[{i}]") for i, (a, v) in enumerate(zip(args, value)))

@@ -10,6 +10,7 @@ import contextlib
 import logging
 import os
 import subprocess
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -78,23 +79,34 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["S
 
 
 class StageRun:
-    """Thin handle so tasks never import mlflow themselves."""
+    """Thin handle so tasks never import mlflow themselves.
+
+    Logs through the client with an explicit run id, so it works from Prefect's worker
+    threads too (mlflow's active run is thread-local).
+    """
 
     def __init__(self, mlflow, run_id: str):
+        from mlflow.tracking import MlflowClient
+
         self._mlflow = mlflow
+        self._client = MlflowClient()
         self.run_id = run_id
 
     def metrics(self, values: dict[str, float], step: int | None = None) -> None:
-        clean = {k: float(v) for k, v in values.items() if isinstance(v, (int, float))}
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        clean = [Metric(k, float(v), now, step or 0) for k, v in values.items()
+                 if isinstance(v, (int, float)) and not isinstance(v, bool)]
         if clean:
-            self._mlflow.log_metrics(clean, step=step)
+            self._client.log_batch(self.run_id, metrics=clean, synchronous=True)
 
     def artifact(self, path: str | Path, subdir: str | None = None) -> None:
         path = Path(path)
         if path.is_dir():
-            self._mlflow.log_artifacts(str(path), artifact_path=subdir)
+            self._client.log_artifacts(self.run_id, str(path), artifact_path=subdir)
         elif path.exists():
-            self._mlflow.log_artifact(str(path), artifact_path=subdir)
+            self._client.log_artifact(self.run_id, str(path), artifact_path=subdir)
 
 
 def _short(value) -> str:

@@ -1,0 +1,41 @@
+"""Flow ``vqvae``: train the x and y VQ-VAEs on target ego views, then measure reconstruction."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+
+from flows.common import Timer, numeric_leaves, write_metrics
+from tasks import vqvae as stage
+from tasks.voxel_data import load_views
+from typ.config import load_config
+from typ.tracking import stage_run
+
+STAGE = "vqvae"
+
+
+@flow(name=STAGE, log_prints=False, validate_parameters=False)
+def vqvae_flow(params: str = "params.yaml", root: str = ".") -> dict:
+    root_path = Path(root)
+    cfg = load_config(root_path / params)
+    block = cfg.vqvae
+    store, out = root_path / block.input, root_path / block.out
+    train = load_views(store, dataset=block.dataset, split=block.train_split)
+    held_out = load_views(store, dataset=block.dataset, split=block.eval_split)
+    stage.check_grid(train, block, cfg.source)
+    metrics: dict = {"train_views": len(train), "eval_views": len(held_out)}
+    with stage_run(STAGE, cfg, root=root_path) as run:
+        for kind in stage.KINDS:
+            with Timer() as timer:
+                model = task(stage.train_one, name=f"train-{kind}", cache_policy=NO_CACHE)(
+                    kind, block, train, out=out, log_fn=run.metrics)
+            scores = task(stage.evaluate, name=f"evaluate-{kind}", cache_policy=NO_CACHE)(
+                model, kind, held_out, threshold=block.threshold, batch_size=block.batch_size)
+            metrics[kind] = {**scores, "seconds_training": round(timer.seconds, 3)}
+        path = write_metrics(STAGE, metrics, root_path)
+        run.metrics(numeric_leaves(metrics))
+        run.artifact(path)
+        run.artifact(out / "x" / "config.json", "x")
+        run.artifact(out / "y" / "config.json", "y")
+    return metrics

@@ -1,0 +1,66 @@
+"""Training loop: resume after a crash equals an uninterrupted run; divergence stops loudly."""
+import pytest
+import torch
+
+from tasks.training import TrainingDiverged, batch_rng, checkpoints, run_loop
+
+
+def _setup():
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 1)
+    opt = torch.optim.Adam(model.parameters(), lr=0.1)
+    data = torch.randn(32, 3)
+    target = data @ torch.tensor([[1.0], [-2.0], [0.5]])
+
+    def step_fn(step, crash_at=None):
+        if step == crash_at:
+            raise KeyboardInterrupt("killed")
+        idx = torch.from_numpy(batch_rng(0, step).choice(32, 8))
+        loss = ((model(data[idx]) - target[idx]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        return {"loss": float(loss.detach())}
+
+    state = (lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
+             lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])))
+    return model, step_fn, state
+
+
+def test_resume_matches_uninterrupted(tmp_path):
+    model_a, step_a, (get_a, set_a) = _setup()
+    run_loop(name="a", total_steps=10, step_fn=step_a, get_state=get_a, set_state=set_a,
+             checkpoint_dir=tmp_path / "a", checkpoint_every=3)
+
+    model_b, step_b, (get_b, set_b) = _setup()
+    with pytest.raises(KeyboardInterrupt):
+        run_loop(name="b", total_steps=10, step_fn=lambda s: step_b(s, crash_at=7), get_state=get_b,
+                 set_state=set_b, checkpoint_dir=tmp_path / "b", checkpoint_every=3)
+    assert [s for s, _ in checkpoints(tmp_path / "b")] == [3, 6]
+    # a fresh process: new objects, state only from disk
+    model_c, step_c, (get_c, set_c) = _setup()
+    result = run_loop(name="c", total_steps=10, step_fn=step_c, get_state=get_c, set_state=set_c,
+                      checkpoint_dir=tmp_path / "b", checkpoint_every=3)
+    assert result.resumed_from == 6 and result.steps_run == 4
+    for pa, pc in zip(model_a.parameters(), model_c.parameters()):
+        assert torch.equal(pa, pc)
+
+
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
+    model, step_fn, (get, set_) = _setup()
+
+    def poisoned(step):
+        values = step_fn(step)
+        return {"loss": float("nan")} if step == 4 else values
+
+    with pytest.raises(TrainingDiverged, match=r"step 4: loss.*last good checkpoint: step_00000004.pt"):
+        run_loop(name="t", total_steps=10, step_fn=poisoned, get_state=get, set_state=set_,
+                 checkpoint_dir=tmp_path, checkpoint_every=2)
+    assert [s for s, _ in checkpoints(tmp_path)] == [2, 4]
+
+
+def test_exploding_gradient_stops(tmp_path):
+    model, step_fn, (get, set_) = _setup()
+    with pytest.raises(TrainingDiverged, match="grad_norm"):
+        run_loop(name="t", total_steps=3, step_fn=lambda s: {**step_fn(s), "grad_norm": 1e9},
+                 get_state=get, set_state=set_, checkpoint_dir=tmp_path, checkpoint_every=1)
