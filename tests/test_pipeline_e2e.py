@@ -22,9 +22,14 @@ pytestmark = pytest.mark.e2e
 SMALL = {
     "profile": "tiny",
     "simulate": {"frames": 2, "azimuth_step_deg": 1.0, "agents_min": 2, "agents_max": 2,
-                 "scenarios": {"source": {"train": 1}, "target": {"train": 1, "test": 1},
+                 "scenarios": {"source": {"train": 1}, "target": {"train": 1, "val": 1, "test": 1},
                                "real_cav": {"train": 1, "test": 0}}},
     "voxelize": {"workers": 2},
+    # training stages at a few steps: the test checks wiring, outputs and resumability, not quality
+    "vqvae": {"x": {"epochs": 2, "block_out_channels": [8, 16, 16, 16]},
+              "y": {"epochs": 2, "block_out_channels": [8, 16, 16, 16]}, "checkpoint_every": 1},
+    "stage1": {"epochs": 2, "sample_steps": 5, "eval_views": 1, "checkpoint_every": 1,
+               "unet": {"block_out_channels": [16, 16, 16, 16]}},
 }
 
 
@@ -69,7 +74,7 @@ def test_repro_writes_readable_outputs(project):
     proj, env, _ = project
     scenarios = sorted((proj / "data" / "sim").glob("*/*/*"))
     assert [s.name for s in scenarios] == ["real_cav_train_0000", "source_train_0000", "target_test_0000",
-                                           "target_train_0000"]
+                                           "target_train_0000", "target_val_0000"]
     for folder in scenarios:
         agents = list_agents(folder)
         assert len(agents) == 2
@@ -79,7 +84,7 @@ def test_repro_writes_readable_outputs(project):
         assert all(len(v.points) > 1000 for v in scene.agents.values())
     stored = list_scenes(proj / "data" / "voxels")
     assert {(s.dataset, s.split) for s in stored} == {("real_cav", "train"), ("source", "train"),
-                                                      ("target", "test"), ("target", "train")}
+                                                      ("target", "test"), ("target", "train"), ("target", "val")}
     grid, _, records = read_scene_voxels(stored[0].path)
     assert grid.shape == (128, 128, 8) and len(records) == 4
     occupancy, boxes = next(iter(records.values()))
@@ -87,8 +92,8 @@ def test_repro_writes_readable_outputs(project):
 
     sim = json.loads((proj / "metrics" / "simulate.json").read_text())
     vox = json.loads((proj / "metrics" / "voxelize.json").read_text())
-    assert sim["simulated"] == 4 and sim["skipped_unchanged"] == 0
-    assert vox["voxelized"] == 4 and vox["views"] == 16
+    assert sim["simulated"] == 5 and sim["skipped_unchanged"] == 0
+    assert vox["voxelized"] == 5 and vox["views"] == 20
 
 
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
@@ -106,8 +111,8 @@ def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
     assert sim.data.params["profile"] == "tiny"
     commit = _run(["git", "rev-parse", "HEAD"], proj, env).stdout.strip()
     assert sim.data.tags["mlflow.source.git.commit"].startswith(commit)
-    assert sim.data.metrics["simulated"] == 4
-    assert by_stage["voxelize"].data.metrics["views"] == 16
+    assert sim.data.metrics["simulated"] == 5
+    assert by_stage["voxelize"].data.metrics["views"] == 20
 
 
 def test_second_repro_does_nothing(project):
@@ -130,8 +135,8 @@ def test_adding_a_scenario_recomputes_only_that_one(project):
     _run(["dvc", "repro"], proj, env)
     sim = json.loads((proj / "metrics" / "simulate.json").read_text())
     vox = json.loads((proj / "metrics" / "voxelize.json").read_text())
-    assert (sim["simulated"], sim["skipped_unchanged"]) == (1, 4)
-    assert (vox["voxelized"], vox["skipped_unchanged"]) == (1, 4)
+    assert (sim["simulated"], sim["skipped_unchanged"]) == (1, 5)
+    assert (vox["voxelized"], vox["skipped_unchanged"]) == (1, 5)
     assert {p: p.read_bytes() for p in old.rglob("*") if p.is_file()} == old_bytes
 
 
