@@ -1,0 +1,92 @@
+"""Stage-1 network and post-processing: shapes, conditioning, adapter residuals, thresholds."""
+import numpy as np
+import pytest
+import torch
+from diffusers import T2IAdapter
+
+from models.ldm import LatentDiffusion
+from models.postprocess import postprocess
+from models.time_embedding import FourierTimeEmbedding
+
+
+def _ldm(**kw):
+    torch.manual_seed(0)
+    return LatentDiffusion(latent_channels=8, cond_channels=3, sample_size=16, block_out_channels=(16, 16, 16, 16),
+                           cross_attention_dim=8, attention_head_dim=4, norm_num_groups=4, **kw)
+
+
+def test_eps_shape_and_condition_matters():
+    m = _ldm().eval()
+    z = torch.randn(2, 8, 16, 16)
+    t = torch.tensor([10, 900])
+    c1, c2 = torch.randn(2, 3, 16, 16), torch.randn(2, 3, 16, 16)
+    with torch.no_grad():
+        e1, e2 = m(z, t, c1), m(z, t, c2)
+    assert e1.shape == (2, 8, 16, 16)
+    assert not torch.allclose(e1, e2)
+
+
+def test_fourier_time_embedding_is_used():
+    m = _ldm(time_embedding="fourier")
+    assert isinstance(m.unet.time_proj, FourierTimeEmbedding)
+    with torch.no_grad():
+        out = m(torch.randn(1, 8, 16, 16), torch.tensor([5]), torch.randn(1, 3, 16, 16))
+    assert torch.isfinite(out).all()
+
+
+def test_t2i_adapter_residuals_fit_the_encoder():
+    """DESIGN: a full_adapter with downscale_factor=1 on x^f yields one residual per UNet level."""
+    m = _ldm().eval()
+    adapter = T2IAdapter(in_channels=8, channels=[16, 16, 16, 16], num_res_blocks=1, downscale_factor=1,
+                         adapter_type="full_adapter")
+    feats = adapter(torch.randn(2, 8, 16, 16))
+    assert [f.shape[-1] for f in feats] == [16, 8, 4, 2]
+    z, t, c = torch.randn(2, 8, 16, 16), torch.tensor([3, 3]), torch.randn(2, 3, 16, 16)
+    with torch.no_grad():
+        plain = m(z, t, c)
+        zero = m(z, t, c, [torch.zeros_like(f) for f in feats])
+        with_adapter = m(z, t, c, list(feats))
+    assert torch.allclose(plain, zero, atol=1e-5)
+    assert not torch.allclose(plain, with_adapter)
+
+
+def test_statistics_round_trip():
+    m = _ldm()
+    lat, cond = torch.randn(20, 8, 16, 16) * 3 + 1, torch.randn(20, 3, 16, 16) * 0.1
+    m.set_statistics(lat, cond)
+    z = m.normalize(lat)
+    assert torch.allclose(z.mean((0, 2, 3)), torch.zeros(8), atol=1e-5)
+    assert torch.allclose(z.std((0, 2, 3)), torch.ones(8), atol=1e-4)
+    assert torch.allclose(m.denormalize(z), lat, atol=1e-5)
+    restored = LatentDiffusion.from_config(m.config)
+    restored.load_state_dict(m.state_dict())
+    assert torch.equal(restored.latent_std, m.latent_std)
+
+
+def test_postprocess_thresholds():
+    logits = torch.logit(torch.tensor([0.05, 0.2, 0.5, 0.8, 0.95]))
+    hard = postprocess(logits, low=0.5, high=0.5, noise_std=0.0)
+    assert hard.tolist() == [False, False, False, True, True]
+    # below low always dropped, above high always kept, whatever the noise
+    for seed in range(5):
+        out = postprocess(logits, low=0.1, high=0.9, noise_std=10.0, generator=torch.Generator().manual_seed(seed))
+        assert not out[0] and out[4]
+    # in between: the fraction kept follows P(logit + noise > 0)
+    mid = torch.full((20000,), torch.logit(torch.tensor(0.5)).item())
+    frac = postprocess(mid, low=0.1, high=0.9, noise_std=1.0, generator=torch.Generator().manual_seed(0)).float().mean()
+    assert abs(frac.item() - 0.5) < 0.02
+    with pytest.raises(ValueError):
+        postprocess(logits, low=0.8, high=0.2, noise_std=1.0)
+
+
+def test_tune_thresholds_finds_the_best_pair():
+    from tasks.stage1 import tune_thresholds
+    from typ.config import config_from_dict
+
+    cfg = config_from_dict({"stage1": {"postprocess": {"noise_std": 0.0, "candidates": [0.2, 0.5, 0.8]}}}).stage1
+    truth = torch.tensor([[1.0, 1.0, 0.0, 0.0]])
+    logits = torch.logit(torch.tensor([[0.6, 0.3, 0.1, 0.25]]))
+    best = tune_thresholds(logits, truth, cfg, seed=0)
+    # threshold 0.2 keeps {0.6, 0.3, 0.25} (IoU 2/3); 0.5 keeps {0.6} (IoU 1/2): 0.2 wins
+    assert (best["low"], best["high"]) == (0.2, 0.2) and best["iou"] == pytest.approx(2 / 3)
+    assert np.isfinite(best["iou"])
