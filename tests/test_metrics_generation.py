@@ -104,8 +104,12 @@ def test_jsd_symmetric_and_order_free(preset):
     assert jsd_bev(tuple(a), np.stack([s[:2000] for s in b]), preset) > 0  # tuples and (M, N, 3) stacks are sets too
 
 
-@given(st.lists(st.tuples(st.integers(30, 69), st.integers(30, 69), st.integers(1, 4)), min_size=1, max_size=8),
-       st.lists(st.tuples(st.integers(30, 69), st.integers(30, 69), st.integers(1, 4)), min_size=1, max_size=8))
+# x cells 48..51 hold points within 3 m of the sensor, which the range filter drops
+_FAR = st.integers(30, 69).filter(lambda k: not 48 <= k <= 51)
+
+
+@given(st.lists(st.tuples(_FAR, st.integers(30, 69), st.integers(1, 4)), min_size=1, max_size=8),
+       st.lists(st.tuples(_FAR, st.integers(30, 69), st.integers(1, 4)), min_size=1, max_size=8))
 @settings(max_examples=30, deadline=None)
 def test_jsd_equals_scipy_on_the_counted_cells(cells_a, cells_b):
     """Whatever cells the points fall in, JSD is scipy's on the per-cell counts."""
