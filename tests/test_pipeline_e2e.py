@@ -96,6 +96,29 @@ def test_repro_writes_readable_outputs(project):
     assert vox["voxelized"] == 5 and vox["views"] == 20
 
 
+def test_training_stages_write_models_and_metrics(project):
+    import torch
+
+    from tasks.stage1 import load_model as load_stage1
+    from tasks.vqvae import load_model as load_vqvae
+
+    proj, _, _ = project
+    vq = json.loads((proj / "metrics" / "vqvae.json").read_text())
+    assert vq["train_views"] == 2 and vq["eval_views"] == 2  # ego views only: 1 scenario x 2 frames
+    for kind in ("x", "y"):
+        assert 0.0 <= vq[kind]["recall"] <= 1.0
+        model = load_vqvae(proj / "artifacts" / "vqvae" / kind)
+        assert model.config["in_channels"] == (8 if kind == "x" else 1)
+    s1 = json.loads((proj / "metrics" / "stage1.json").read_text())
+    assert s1["generated"]["empty_generated"] in (0, 1)
+    assert 0.0 < s1["postprocess"]["low"] <= s1["postprocess"]["high"] < 1.0
+    model, saved = load_stage1(proj / "artifacts" / "stage1")
+    assert saved["schedule"] == "linear" and saved["postprocess"] == s1["postprocess"]
+    with torch.no_grad():
+        eps = model(torch.zeros(1, 8, 16, 16), torch.tensor([1]), torch.zeros(1, 3, 16, 16))
+    assert torch.isfinite(eps).all()
+
+
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
     import mlflow
 
