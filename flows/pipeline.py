@@ -16,10 +16,12 @@ def _flows() -> dict[str, Callable]:
     # imported lazily: `typ --help` must not pay for Prefect's import of every stage
     from flows.simulate import simulate_flow
     from flows.voxelize import voxelize_flow
+    from flows.adapt import adapt_flow
     from flows.stage1 import stage1_flow
     from flows.vqvae import vqvae_flow
 
-    return {"simulate": simulate_flow, "voxelize": voxelize_flow, "vqvae": vqvae_flow, "stage1": stage1_flow}
+    return {"simulate": simulate_flow, "voxelize": voxelize_flow, "vqvae": vqvae_flow, "stage1": stage1_flow,
+            "adapt": adapt_flow}
 
 
 STAGES = Config.STAGES

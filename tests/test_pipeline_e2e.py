@@ -22,7 +22,7 @@ pytestmark = pytest.mark.e2e
 SMALL = {
     "profile": "tiny",
     "simulate": {"frames": 2, "azimuth_step_deg": 1.0, "agents_min": 2, "agents_max": 2,
-                 "scenarios": {"source": {"train": 1}, "target": {"train": 1, "val": 1, "test": 1},
+                 "scenarios": {"source": {"train": 1, "test": 1}, "target": {"train": 1, "val": 1, "test": 1},
                                "real_cav": {"train": 1, "test": 0}}},
     "voxelize": {"workers": 2},
     # training stages at a few steps: the test checks wiring, outputs and resumability, not quality
@@ -30,6 +30,7 @@ SMALL = {
               "y": {"epochs": 2, "block_out_channels": [8, 16, 16, 16]}, "checkpoint_every": 1},
     "stage1": {"epochs": 2, "sample_steps": 5, "eval_views": 1, "checkpoint_every": 1,
                "unet": {"block_out_channels": [16, 16, 16, 16]}},
+    "adapt": {"epochs": 1, "disc_width": 8, "checkpoint_every": 1, "eval_views": 2},
 }
 
 
@@ -73,8 +74,8 @@ def test_repro_writes_readable_outputs(project):
 
     proj, env, _ = project
     scenarios = sorted((proj / "data" / "sim").glob("*/*/*"))
-    assert [s.name for s in scenarios] == ["real_cav_train_0000", "source_train_0000", "target_test_0000",
-                                           "target_train_0000", "target_val_0000"]
+    assert [s.name for s in scenarios] == ["real_cav_train_0000", "source_test_0000", "source_train_0000",
+                                           "target_test_0000", "target_train_0000", "target_val_0000"]
     for folder in scenarios:
         agents = list_agents(folder)
         assert len(agents) == 2
@@ -83,7 +84,7 @@ def test_repro_writes_readable_outputs(project):
         scene = read_scene(folder, stamps[0])
         assert all(len(v.points) > 1000 for v in scene.agents.values())
     stored = list_scenes(proj / "data" / "voxels")
-    assert {(s.dataset, s.split) for s in stored} == {("real_cav", "train"), ("source", "train"),
+    assert {(s.dataset, s.split) for s in stored} == {("real_cav", "train"), ("source", "train"), ("source", "test"),
                                                       ("target", "test"), ("target", "train"), ("target", "val")}
     grid, _, records = read_scene_voxels(stored[0].path)
     assert grid.shape == (128, 128, 8) and len(records) == 4
@@ -92,8 +93,8 @@ def test_repro_writes_readable_outputs(project):
 
     sim = json.loads((proj / "metrics" / "simulate.json").read_text())
     vox = json.loads((proj / "metrics" / "voxelize.json").read_text())
-    assert sim["simulated"] == 5 and sim["skipped_unchanged"] == 0
-    assert vox["voxelized"] == 5 and vox["views"] == 20
+    assert sim["simulated"] == 6 and sim["skipped_unchanged"] == 0
+    assert vox["voxelized"] == 6 and vox["views"] == 24
 
 
 def test_training_stages_write_models_and_metrics(project):
@@ -117,6 +118,11 @@ def test_training_stages_write_models_and_metrics(project):
     with torch.no_grad():
         eps = model(torch.zeros(1, 8, 16, 16), torch.tensor([1]), torch.zeros(1, 3, 16, 16))
     assert torch.isfinite(eps).all()
+    ad = json.loads((proj / "metrics" / "adapt.json").read_text())
+    assert ad["source_views"] == 4 and set(ad["before"]) == set(ad["after"])  # 1 scenario x 2 frames x 2 agents
+    source_vq = load_vqvae(proj / "artifacts" / "adapt" / "source_vq")
+    target_vq = load_vqvae(proj / "artifacts" / "vqvae" / "x")
+    assert torch.equal(source_vq.net.quantize.embedding.weight, target_vq.net.quantize.embedding.weight)
 
 
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
@@ -134,8 +140,8 @@ def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
     assert sim.data.params["profile"] == "tiny"
     commit = _run(["git", "rev-parse", "HEAD"], proj, env).stdout.strip()
     assert sim.data.tags["mlflow.source.git.commit"].startswith(commit)
-    assert sim.data.metrics["simulated"] == 5
-    assert by_stage["voxelize"].data.metrics["views"] == 20
+    assert sim.data.metrics["simulated"] == 6
+    assert by_stage["voxelize"].data.metrics["views"] == 24
 
 
 def test_second_repro_does_nothing(project):
@@ -158,8 +164,8 @@ def test_adding_a_scenario_recomputes_only_that_one(project):
     _run(["dvc", "repro"], proj, env)
     sim = json.loads((proj / "metrics" / "simulate.json").read_text())
     vox = json.loads((proj / "metrics" / "voxelize.json").read_text())
-    assert (sim["simulated"], sim["skipped_unchanged"]) == (1, 5)
-    assert (vox["voxelized"], vox["skipped_unchanged"]) == (1, 5)
+    assert (sim["simulated"], sim["skipped_unchanged"]) == (1, 6)
+    assert (vox["voxelized"], vox["skipped_unchanged"]) == (1, 6)
     assert {p: p.read_bytes() for p in old.rglob("*") if p.is_file()} == old_bytes
 
 

@@ -216,6 +216,38 @@ class Stage1Config:
 
 
 @dataclass(frozen=True)
+class AdaptConfig:
+    """Stage ``adapt`` (TYP Eq. 8–10): E_src, G_src against a hinge discriminator on x^f."""
+
+    disc_width: int
+    epochs: int
+    batch_size: int
+    lr: float
+    lr_disc: float
+    gamma: float
+    seed: int
+    checkpoint_every: int
+    max_disc_loss: float
+    eval_views: int
+    input: str
+    vqvae: str
+    source_dataset: str
+    source_split: str
+    source_eval_split: str
+    target_dataset: str
+    target_split: str
+    target_eval_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        for key in ("disc_width", "epochs", "batch_size", "lr", "lr_disc", "checkpoint_every", "max_disc_loss",
+                    "eval_views"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+        if self.gamma < 0:
+            raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0", self.gamma)
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """Where runs are logged; ``MLFLOW_TRACKING_URI`` in the environment wins over ``uri``."""
 
@@ -235,10 +267,11 @@ class Config:
     voxelize: VoxelizeConfig
     vqvae: VQVAEStageConfig
     stage1: Stage1Config
+    adapt: AdaptConfig
     source: str = field(default="params.yaml", compare=False)
 
     #: stage name -> attribute holding its block, in pipeline order
-    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1")
+    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt")
 
     def block(self, stage: str):
         if stage not in self.STAGES:

@@ -1,0 +1,143 @@
+"""Stage ``adapt`` (TYP §3.4, Eq. 8–10): bring source (simulated CAV) features into the target space.
+
+E_src and G_src start as copies of the target VQ-VAE's E_tgt and G_tgt; the codebook Q_tgt
+is shared and frozen, E_tgt/G_tgt stay frozen. A 4-layer discriminator D on x^f and
+(E_src, G_src) are updated in alternation, each batch holding as many source as target
+views:
+- D:   L_D = E_tgt[max(0, 1 - D(E_tgt(x)))] + E_src[max(0, 1 + D(E_src(x)))]          (Eq. 8)
+- VQ:  L_vq = L_rec(G_src(Q(E_src(x))), x) - E_src[D(E_src(x))] + ||sg[x^z] - E_src(x)||²  (Eq. 9, 10)
+Output: ``<out>/source_vq/model.pt`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
+``<out>/discriminator.pt``. A NaN/Inf loss or a discriminator loss beyond
+``max_disc_loss`` stops the stage before any model file is written.
+"""
+from __future__ import annotations
+
+import copy
+import io
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from models.discriminator import LatentDiscriminator
+from models.losses import focal_loss, hinge_d_loss, hinge_g_loss
+from models.vqvae import BEVVQVAE
+from tasks.training import TrainingDiverged, batch_rng, grad_norm, run_loop, seed_everything, steps_for
+from tasks.voxel_data import ViewSet
+from tasks.vqvae import save_model as save_vqvae
+from typ.config import AdaptConfig, as_dict
+from typ.io import hash_obj, write_bytes
+from typ.metrics import jsd_bev, mmd_bev, occupancy_iou
+from typ.voxel import voxel_centers
+
+
+def source_from_target(target: BEVVQVAE) -> BEVVQVAE:
+    """E_src, G_src initialised from E_tgt, G_tgt; the codebook is Q_tgt, frozen."""
+    source = copy.deepcopy(target)
+    source.net.quantize.embedding.weight.requires_grad_(False)
+    for p in target.parameters():
+        p.requires_grad_(False)
+    return source
+
+
+def _pick(views: ViewSet, rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.choice(len(views), size=n, replace=len(views) < n)
+
+
+def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_views: ViewSet, *,
+          out: Path, log_fn: Callable[[dict, int], None]) -> tuple[BEVVQVAE, LatentDiscriminator]:
+    seed_everything(cfg.seed)
+    source_vq = source_from_target(target_vq)
+    disc = LatentDiscriminator(in_channels=target_vq.config["latent_channels"], width=cfg.disc_width)
+    trainable = [p for p in source_vq.parameters() if p.requires_grad]
+    opt_g = torch.optim.Adam(trainable, lr=cfg.lr, betas=(0.5, 0.9))
+    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_disc, betas=(0.5, 0.9))
+    total = steps_for(cfg.epochs, len(source_views), cfg.batch_size)
+    key = hash_obj({"cfg": as_dict(cfg), "src": [list(k) for k in source_views.keys],
+                    "tgt": [list(k) for k in target_views.keys],
+                    "tgt_model": float(sum(p.double().sum() for p in target_vq.parameters()))})[:16]
+    ckpt_root = out / "checkpoints"
+    for old in ckpt_root.glob("*"):
+        if old.name != key:
+            shutil.rmtree(old, ignore_errors=True)
+    target_vq.eval()
+
+    def step_fn(step: int) -> dict[str, float]:
+        rng = batch_rng(cfg.seed, step)
+        x_src, _ = source_views.batch(_pick(source_views, rng, cfg.batch_size),
+                                      flips=rng.random(cfg.batch_size) < 0.5)
+        x_tgt, _ = target_views.batch(_pick(target_views, rng, cfg.batch_size),
+                                      flips=rng.random(cfg.batch_size) < 0.5)
+        source_vq.train()
+        with torch.no_grad():
+            f_tgt = target_vq.encode_pre_quant(x_tgt)
+            f_src_fixed = source_vq.encode_pre_quant(x_src)
+        d_loss = hinge_d_loss(disc(f_tgt), disc(f_src_fixed))
+        opt_d.zero_grad(set_to_none=True)
+        d_loss.backward()
+        opt_d.step()
+        d_value = float(d_loss.detach())
+        if d_value > cfg.max_disc_loss:
+            raise TrainingDiverged(f"adapt: step {step}: discriminator loss {d_value:.3g} > "
+                                   f"max_disc_loss={cfg.max_disc_loss}; stopped before writing a model")
+
+        f_src = source_vq.encode_pre_quant(x_src)
+        z_q, _, _ = source_vq.quantize(f_src)
+        rec = focal_loss(source_vq.decode_logits(z_q), x_src, gamma=cfg.gamma)
+        adv = hinge_g_loss(disc(f_src))
+        commit = F.mse_loss(f_src, z_q.detach())
+        loss = rec + adv + commit
+        opt_g.zero_grad(set_to_none=True)
+        loss.backward()
+        norm = grad_norm(trainable)
+        opt_g.step()
+        return {"loss": float(loss.detach()), "rec": float(rec.detach()), "adv": float(adv.detach()),
+                "commit": float(commit.detach()), "disc_loss": d_value, "grad_norm": norm}
+
+    run_loop(name="adapt", total_steps=total, step_fn=step_fn,
+             get_state=lambda: {"source": source_vq.state_dict(), "disc": disc.state_dict(),
+                                "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict()},
+             set_state=lambda s: (source_vq.load_state_dict(s["source"]), disc.load_state_dict(s["disc"]),
+                                  opt_g.load_state_dict(s["opt_g"]), opt_d.load_state_dict(s["opt_d"])),
+             checkpoint_dir=ckpt_root / key, checkpoint_every=cfg.checkpoint_every,
+             log_fn=lambda values, step: log_fn({f"adapt.{k}": v for k, v in values.items()}, step))
+    return source_vq.eval(), disc.eval()
+
+
+def save(source_vq: BEVVQVAE, disc: LatentDiscriminator, out: Path) -> None:
+    save_vqvae(source_vq, out / "source_vq")
+    buf = io.BytesIO()
+    torch.save({"config": disc.config, "state_dict": disc.state_dict()}, buf)
+    write_bytes(out / "discriminator.pt", buf.getvalue())
+
+
+def _clouds(occupancy: np.ndarray, grid) -> list[np.ndarray]:
+    return [voxel_centers(o.transpose(1, 2, 0), grid) for o in occupancy]
+
+
+@torch.no_grad()
+def evaluate(encoder_vq: BEVVQVAE, target_vq: BEVVQVAE, source_views: ViewSet, target_views: ViewSet,
+             disc: LatentDiscriminator, *, n: int) -> dict[str, float]:
+    """How target-like source scenes look through ``encoder_vq``'s encoder and the TARGET decoder.
+
+    jsd/mmd (r2dm preset): clouds G_tgt(Q(E(x_src))) vs the true target clouds; this is what
+    the generator will see, since stage 1 generates in the target's latent space.
+    rec_iou_source: E, G of ``encoder_vq`` reconstructing the source views (threshold 0.5).
+    disc_accuracy: share of views D puts on the right side of 0 (0.5 = features indistinguishable).
+    """
+    src = source_views.batch(np.arange(min(n, len(source_views))))[0]
+    tgt = target_views.batch(np.arange(min(n, len(target_views))))[0]
+    f_src = encoder_vq.encode_pre_quant(src)
+    as_target = torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5
+    own = torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5
+    grid = source_views.grid
+    gen, real = _clouds(as_target.numpy(), grid), _clouds(tgt.numpy() > 0.5, grid)
+    gen = [g for g in gen if len(g)] or [np.zeros((1, 3))]
+    f_tgt = target_vq.encode_pre_quant(tgt)
+    correct = torch.cat([disc(f_tgt) > 0, disc(f_src) < 0]).float().mean()
+    return {"jsd_r2dm": jsd_bev(real, gen, preset="r2dm"), "mmd_r2dm": mmd_bev(real, gen, preset="r2dm"),
+            "rec_iou_source": occupancy_iou(own.numpy(), src.numpy() > 0.5)["iou"],
+            "disc_accuracy": float(correct)}
