@@ -31,6 +31,7 @@ SMALL = {
     "stage1": {"epochs": 2, "sample_steps": 5, "eval_views": 1, "checkpoint_every": 1,
                "unet": {"block_out_channels": [16, 16, 16, 16]}},
     "adapt": {"epochs": 1, "disc_width": 8, "checkpoint_every": 1, "eval_views": 2},
+    "stage2": {"epochs": 1, "checkpoint_every": 1, "eval_pairs": 2},
 }
 
 
@@ -123,6 +124,12 @@ def test_training_stages_write_models_and_metrics(project):
     source_vq = load_vqvae(proj / "artifacts" / "adapt" / "source_vq")
     target_vq = load_vqvae(proj / "artifacts" / "vqvae" / "x")
     assert torch.equal(source_vq.net.quantize.embedding.weight, target_vq.net.quantize.embedding.weight)
+    s2 = json.loads((proj / "metrics" / "stage2.json").read_text())
+    # source: 1 scenario x 2 frames x 2 ordered pairs; target test: ego -> the other agent, 2 frames
+    assert (s2["train_pairs"], s2["eval_pairs"]) == (4, 2)
+    for method in ("naive_copy", "stage1_only", "typ"):
+        assert 0.0 <= s2[method]["iou"] <= 1.0
+    assert (proj / "artifacts" / "stage2" / "adapter.pt").exists()
 
 
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):

@@ -248,6 +248,33 @@ class AdaptConfig:
 
 
 @dataclass(frozen=True)
+class Stage2Config:
+    """Stage ``stage2`` (TYP Eq. 5–7): a T2I-Adapter on x^f_e' trained on source tuples, UNet frozen."""
+
+    adapter_res_blocks: int
+    epochs: int
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    eval_pairs: int
+    sim: str
+    voxels: str
+    vqvae: str
+    adapt: str
+    stage1: str
+    source_domain: str
+    source_split: str
+    target_domain: str
+    target_eval_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        for key in ("adapter_res_blocks", "epochs", "batch_size", "lr", "checkpoint_every", "eval_pairs"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """Where runs are logged; ``MLFLOW_TRACKING_URI`` in the environment wins over ``uri``."""
 
@@ -268,10 +295,11 @@ class Config:
     vqvae: VQVAEStageConfig
     stage1: Stage1Config
     adapt: AdaptConfig
+    stage2: Stage2Config
     source: str = field(default="params.yaml", compare=False)
 
     #: stage name -> attribute holding its block, in pipeline order
-    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt")
+    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2")
 
     def block(self, stage: str):
         if stage not in self.STAGES:

@@ -228,6 +228,12 @@ def stored_input_hash(path: str | os.PathLike) -> str | None:
     return _metadata(path, _read_schema(path))[1]
 
 
+def stored_grid(path: str | os.PathLike) -> Grid:
+    """The grid a scene file was written on (footer only)."""
+    path = Path(path)
+    return _metadata(path, _read_schema(path))[0]
+
+
 def read_scene_indices(path: str | os.PathLike) -> tuple[Grid, str, dict[tuple[str, str], SparseRecord]]:
     """Read a scene file without densifying: ``(grid, input_hash, {(agent_id, timestamp): (occ, box)})``.
 

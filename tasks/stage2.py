@@ -1,0 +1,101 @@
+"""Stage ``stage2`` (TYP Eq. 5–7): ground P(x|y) on the ego's view with a T2I-Adapter.
+
+F_AD = diffusers' ``T2IAdapter`` (full adapter, ``downscale_factor=1``) maps the standardised
+x^f_e' = E_src(x_e') to one feature map per UNet encoder level; they are added to the frozen
+stage-1 UNet's encoder features at every denoising step (Eq. 6). Only F_AD learns, on source
+(simulated CAV) tuples encoded with the adapted source encoder (stage ``adapt``). At
+inference on the target domain, x_e' is encoded with the target encoder E_tgt (TYP §3.4).
+Output: ``<out>/adapter.pt`` and resumable ``<out>/checkpoints/<key>/``.
+"""
+from __future__ import annotations
+
+import io
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from diffusers import T2IAdapter
+
+from models.ldm import LatentDiffusion
+from models.schedules import alphas_cumprod, betas
+from models.vqvae import BEVVQVAE
+from tasks.training import batch_rng, grad_norm, run_loop, seed_everything, steps_for
+from typ.config import Stage2Config, as_dict
+from typ.errors import TypError
+from typ.io import hash_obj, write_bytes
+
+
+def build_adapter(cfg: Stage2Config, ldm: LatentDiffusion) -> T2IAdapter:
+    """Feature widths follow the UNet's levels, so residual i matches encoder level i."""
+    return T2IAdapter(in_channels=ldm.config["latent_channels"], channels=list(ldm.config["block_out_channels"]),
+                      num_res_blocks=cfg.adapter_res_blocks, downscale_factor=1, adapter_type="full_adapter")
+
+
+@torch.no_grad()
+def encode(x_encoder: BEVVQVAE, y_vq: BEVVQVAE, x_r: np.ndarray, y_r: np.ndarray, x_e: np.ndarray,
+           batch_size: int = 8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pre-quantization latents (x_r^f, y_r^f, x_e'^f) of stacked (N, C, H, W) grids."""
+    out: list[list[torch.Tensor]] = [[], [], []]
+    for start in range(0, len(x_r), batch_size):
+        sl = slice(start, start + batch_size)
+        out[0].append(x_encoder.encode_pre_quant(torch.from_numpy(x_r[sl])))
+        out[1].append(y_vq.encode_pre_quant(torch.from_numpy(y_r[sl])))
+        out[2].append(x_encoder.encode_pre_quant(torch.from_numpy(x_e[sl])))
+    return tuple(torch.cat(o) for o in out)
+
+
+def train(cfg: Stage2Config, ldm: LatentDiffusion, schedule: str, train_timesteps: int, x_r: torch.Tensor,
+          y_r: torch.Tensor, x_e: torch.Tensor, *, out: Path, log_fn: Callable[[dict, int], None]) -> T2IAdapter:
+    """Eq. 7 with the UNet frozen; returns the trained adapter."""
+    if len(x_r) == 0:
+        raise TypError(out, "stage2 training pairs", "at least one (ego, reference) pair in the source split", 0)
+    seed_everything(cfg.seed)
+    ldm.eval().requires_grad_(False)
+    adapter = build_adapter(cfg, ldm)
+    z0, c, ce = ldm.normalize(x_r), ldm.normalize_cond(y_r), ldm.normalize(x_e)
+    abar = torch.from_numpy(alphas_cumprod(betas(schedule, train_timesteps))).float()
+    opt = torch.optim.AdamW(adapter.parameters(), lr=cfg.lr)
+    total = steps_for(cfg.epochs, len(z0), cfg.batch_size)
+    key = hash_obj({"cfg": as_dict(cfg), "data": float(x_r.double().sum() + x_e.double().sum()), "n": len(x_r),
+                    "ldm": float(sum(p.double().sum() for p in ldm.parameters()))})[:16]
+    ckpt_root = out / "checkpoints"
+    for old in ckpt_root.glob("*"):
+        if old.name != key:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def step_fn(step: int) -> dict[str, float]:
+        rng = batch_rng(cfg.seed, step)
+        index = torch.from_numpy(rng.choice(len(z0), size=cfg.batch_size, replace=len(z0) < cfg.batch_size))
+        t = torch.from_numpy(rng.integers(0, train_timesteps, cfg.batch_size))
+        eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
+        a = abar[t].view(-1, 1, 1, 1)
+        z_t = a.sqrt() * z0[index] + (1 - a).sqrt() * eps
+        adapter.train()
+        loss = F.mse_loss(ldm(z_t, t, c[index], list(adapter(ce[index]))), eps)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        norm = grad_norm(adapter.parameters())
+        opt.step()
+        return {"loss": float(loss.detach()), "grad_norm": norm}
+
+    run_loop(name="stage2", total_steps=total, step_fn=step_fn,
+             get_state=lambda: {"adapter": adapter.state_dict(), "opt": opt.state_dict()},
+             set_state=lambda s: (adapter.load_state_dict(s["adapter"]), opt.load_state_dict(s["opt"])),
+             checkpoint_dir=ckpt_root / key, checkpoint_every=cfg.checkpoint_every,
+             log_fn=lambda values, step: log_fn({f"stage2.{k}": v for k, v in values.items()}, step))
+    return adapter.eval()
+
+
+@torch.no_grad()
+def adapter_features(adapter: T2IAdapter, ldm: LatentDiffusion, x_e_latents: torch.Tensor) -> list[torch.Tensor]:
+    """F_c = F_AD(x^f_e') (Eq. 5), computed once per sample and reused at every step."""
+    return list(adapter(ldm.normalize(x_e_latents)))
+
+
+def save(adapter: T2IAdapter, cfg: Stage2Config, folder: Path) -> None:
+    buf = io.BytesIO()
+    torch.save({"config": {"adapter_res_blocks": cfg.adapter_res_blocks}, "state_dict": adapter.state_dict()}, buf)
+    write_bytes(folder / "adapter.pt", buf.getvalue())
