@@ -44,8 +44,11 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# sampling needs the trained models of `make run` (artifacts/); voxelize needs nothing
 bench: $(STAMP)
 	$(BIN)/python bench/voxelize.py --out reports
+	test -f artifacts/stage1/model.pt || $(BIN)/dvc repro
+	$(BIN)/python bench/sampling.py --out reports
 
 clean:
 	rm -rf $(VENV) .prefect

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import torch
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE

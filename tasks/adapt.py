@@ -13,8 +13,6 @@ Output: ``<out>/source_vq/model.pt`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
 from __future__ import annotations
 
 import copy
-import io
-import shutil
 from pathlib import Path
 from typing import Callable
 
@@ -25,11 +23,12 @@ import torch.nn.functional as F
 from models.discriminator import LatentDiscriminator
 from models.losses import focal_loss, hinge_d_loss, hinge_g_loss
 from models.vqvae import BEVVQVAE
-from tasks.training import TrainingDiverged, batch_rng, grad_norm, run_loop, seed_everything, steps_for
+from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch,
+                            seed_everything, steps_for)
 from tasks.voxel_data import ViewSet
 from tasks.vqvae import save_model as save_vqvae
 from typ.config import AdaptConfig, as_dict
-from typ.io import hash_obj, write_bytes
+from typ.io import hash_obj
 from typ.metrics import jsd_bev, mmd_bev, occupancy_iou
 from typ.voxel import voxel_centers
 
@@ -59,10 +58,7 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
     key = hash_obj({"cfg": as_dict(cfg), "src": [list(k) for k in source_views.keys],
                     "tgt": [list(k) for k in target_views.keys],
                     "tgt_model": float(sum(p.double().sum() for p in target_vq.parameters()))})[:16]
-    ckpt_root = out / "checkpoints"
-    for old in ckpt_root.glob("*"):
-        if old.name != key:
-            shutil.rmtree(old, ignore_errors=True)
+    ckpt_dir = run_checkpoint_dir(out / "checkpoints", key)
     target_vq.eval()
 
     def step_fn(step: int) -> dict[str, float]:
@@ -102,16 +98,14 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
                                 "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict()},
              set_state=lambda s: (source_vq.load_state_dict(s["source"]), disc.load_state_dict(s["disc"]),
                                   opt_g.load_state_dict(s["opt_g"]), opt_d.load_state_dict(s["opt_d"])),
-             checkpoint_dir=ckpt_root / key, checkpoint_every=cfg.checkpoint_every,
+             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
              log_fn=lambda values, step: log_fn({f"adapt.{k}": v for k, v in values.items()}, step))
     return source_vq.eval(), disc.eval()
 
 
 def save(source_vq: BEVVQVAE, disc: LatentDiscriminator, out: Path) -> None:
     save_vqvae(source_vq, out / "source_vq")
-    buf = io.BytesIO()
-    torch.save({"config": disc.config, "state_dict": disc.state_dict()}, buf)
-    write_bytes(out / "discriminator.pt", buf.getvalue())
+    save_torch(out / "discriminator.pt", {"config": disc.config, "state_dict": disc.state_dict()})
 
 
 def _clouds(occupancy: np.ndarray, grid) -> list[np.ndarray]:

@@ -8,9 +8,7 @@ weights, schedule, thresholds), ``<out>/postprocess.json``, ``<out>/checkpoints/
 """
 from __future__ import annotations
 
-import io
 import itertools
-import shutil
 from pathlib import Path
 from typing import Callable
 
@@ -23,11 +21,11 @@ from models.postprocess import postprocess
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, run_loop, seed_everything, steps_for
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
-from typ.io import hash_obj, write_bytes, write_json
+from typ.io import hash_obj, write_json
 from typ.metrics import chamfer_distance, jsd_bev, mmd_bev, occupancy_iou
 from typ.voxel import Grid, voxel_centers
 
@@ -61,6 +59,19 @@ def check_latents(cfg: Stage1Config, sample_size: int, where: str) -> None:
                        f"a downsampling factor ({factor}) that divides the latent size {sample_size}", factor)
 
 
+def noised_batch(rng: np.random.Generator, z0: torch.Tensor, abar: torch.Tensor, batch_size: int):
+    """One training batch of the forward process q(z_t | z_0) = N(√ᾱ_t z_0, (1 - ᾱ_t) I).
+
+    Returns (index (B,), t (B,), ε (B, ...), z_t) drawn from ``rng`` alone, so resumed runs
+    draw the same batches.
+    """
+    index = torch.from_numpy(rng.choice(len(z0), size=batch_size, replace=len(z0) < batch_size))
+    t = torch.from_numpy(rng.integers(0, len(abar), batch_size))
+    eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
+    a = abar[t].view(-1, 1, 1, 1)
+    return index, t, eps, a.sqrt() * z0[index] + (1 - a).sqrt() * eps
+
+
 def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, out: Path,
           log_fn: Callable[[dict, int], None]) -> LatentDiffusion:
     """Eq. 4: E_{t, ε} ||ε - ε_θ(√ᾱ_t x^f + √(1-ᾱ_t) ε, y^f, t)||², resuming from checkpoints."""
@@ -72,18 +83,10 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, out: 
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
     total = steps_for(cfg.epochs, len(z0), cfg.batch_size)
     key = hash_obj({"cfg": as_dict(cfg), "latents": float(latents.double().sum()), "n": len(latents)})[:16]
-    ckpt_root = out / "checkpoints"
-    for old in ckpt_root.glob("*"):
-        if old.name != key:
-            shutil.rmtree(old, ignore_errors=True)
+    ckpt_dir = run_checkpoint_dir(out / "checkpoints", key)
 
     def step_fn(step: int) -> dict[str, float]:
-        rng = batch_rng(cfg.seed, step)
-        index = torch.from_numpy(rng.choice(len(z0), size=cfg.batch_size, replace=len(z0) < cfg.batch_size))
-        t = torch.from_numpy(rng.integers(0, cfg.train_timesteps, cfg.batch_size))
-        eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
-        a = abar[t].view(-1, 1, 1, 1)
-        z_t = a.sqrt() * z0[index] + (1 - a).sqrt() * eps
+        index, t, eps, z_t = noised_batch(batch_rng(cfg.seed, step), z0, abar, cfg.batch_size)
         model.train()
         loss = F.mse_loss(model(z_t, t, c[index]), eps)
         opt.zero_grad(set_to_none=True)
@@ -95,7 +98,7 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, out: 
     run_loop(name="stage1", total_steps=total, step_fn=step_fn,
              get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
              set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_root / key, checkpoint_every=cfg.checkpoint_every,
+             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
              log_fn=lambda values, step: log_fn({f"stage1.{k}": v for k, v in values.items()}, step))
     return model.eval()
 
@@ -148,10 +151,8 @@ def generation_metrics(occupancy: np.ndarray, truth: np.ndarray, grid: Grid) -> 
 
 
 def save_model(model: LatentDiffusion, cfg: Stage1Config, thresholds: dict, folder: Path) -> None:
-    buf = io.BytesIO()
-    torch.save({"config": model.config, "state_dict": model.state_dict(), "schedule": cfg.schedule,
-                "train_timesteps": cfg.train_timesteps, "postprocess": thresholds}, buf)
-    write_bytes(folder / "model.pt", buf.getvalue())
+    save_torch(folder / "model.pt", {"config": model.config, "state_dict": model.state_dict(), "schedule": cfg.schedule,
+                                     "train_timesteps": cfg.train_timesteps, "postprocess": thresholds})
     write_json(folder / "postprocess.json", thresholds)
 
 

@@ -9,8 +9,6 @@ Output: ``<out>/adapter.pt`` and resumable ``<out>/checkpoints/<key>/``.
 """
 from __future__ import annotations
 
-import io
-import shutil
 from pathlib import Path
 from typing import Callable
 
@@ -22,10 +20,11 @@ from diffusers import T2IAdapter
 from models.ldm import LatentDiffusion
 from models.schedules import alphas_cumprod, betas
 from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, run_loop, seed_everything, steps_for
+from tasks.stage1 import noised_batch
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from typ.config import Stage2Config, as_dict
 from typ.errors import TypError
-from typ.io import hash_obj, write_bytes
+from typ.io import hash_obj
 
 
 def build_adapter(cfg: Stage2Config, ldm: LatentDiffusion) -> T2IAdapter:
@@ -61,18 +60,10 @@ def train(cfg: Stage2Config, ldm: LatentDiffusion, schedule: str, train_timestep
     total = steps_for(cfg.epochs, len(z0), cfg.batch_size)
     key = hash_obj({"cfg": as_dict(cfg), "data": float(x_r.double().sum() + x_e.double().sum()), "n": len(x_r),
                     "ldm": float(sum(p.double().sum() for p in ldm.parameters()))})[:16]
-    ckpt_root = out / "checkpoints"
-    for old in ckpt_root.glob("*"):
-        if old.name != key:
-            shutil.rmtree(old, ignore_errors=True)
+    ckpt_dir = run_checkpoint_dir(out / "checkpoints", key)
 
     def step_fn(step: int) -> dict[str, float]:
-        rng = batch_rng(cfg.seed, step)
-        index = torch.from_numpy(rng.choice(len(z0), size=cfg.batch_size, replace=len(z0) < cfg.batch_size))
-        t = torch.from_numpy(rng.integers(0, train_timesteps, cfg.batch_size))
-        eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
-        a = abar[t].view(-1, 1, 1, 1)
-        z_t = a.sqrt() * z0[index] + (1 - a).sqrt() * eps
+        index, t, eps, z_t = noised_batch(batch_rng(cfg.seed, step), z0, abar, cfg.batch_size)
         adapter.train()
         loss = F.mse_loss(ldm(z_t, t, c[index], list(adapter(ce[index]))), eps)
         opt.zero_grad(set_to_none=True)
@@ -84,7 +75,7 @@ def train(cfg: Stage2Config, ldm: LatentDiffusion, schedule: str, train_timestep
     run_loop(name="stage2", total_steps=total, step_fn=step_fn,
              get_state=lambda: {"adapter": adapter.state_dict(), "opt": opt.state_dict()},
              set_state=lambda s: (adapter.load_state_dict(s["adapter"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_root / key, checkpoint_every=cfg.checkpoint_every,
+             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
              log_fn=lambda values, step: log_fn({f"stage2.{k}": v for k, v in values.items()}, step))
     return adapter.eval()
 
@@ -96,6 +87,5 @@ def adapter_features(adapter: T2IAdapter, ldm: LatentDiffusion, x_e_latents: tor
 
 
 def save(adapter: T2IAdapter, cfg: Stage2Config, folder: Path) -> None:
-    buf = io.BytesIO()
-    torch.save({"config": {"adapter_res_blocks": cfg.adapter_res_blocks}, "state_dict": adapter.state_dict()}, buf)
-    write_bytes(folder / "adapter.pt", buf.getvalue())
+    save_torch(folder / "adapter.pt", {"config": {"adapter_res_blocks": cfg.adapter_res_blocks},
+                                       "state_dict": adapter.state_dict()})

@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import math
 import re
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -50,13 +51,27 @@ def checkpoints(directory: Path) -> list[tuple[int, Path]]:
 
 
 def save_checkpoint(directory: Path, step: int, state: dict, *, keep: int = 2) -> Path:
-    buf = io.BytesIO()
-    torch.save({"step": step, **state}, buf)
     path = directory / f"step_{step:08d}.pt"
-    write_bytes(path, buf.getvalue())
+    save_torch(path, {"step": step, **state})
     for _, old in checkpoints(directory)[:-keep]:
         old.unlink(missing_ok=True)
     return path
+
+
+def run_checkpoint_dir(root: Path, key: str) -> Path:
+    """``root/key``: where this run's checkpoints go. Checkpoints of other keys (another config or
+    other data) are removed, so a resume only ever continues the same run."""
+    for old in root.glob("*"):
+        if old.name != key:
+            shutil.rmtree(old, ignore_errors=True)
+    return root / key
+
+
+def save_torch(path: Path, obj: dict) -> None:
+    """torch.save ``obj`` to ``path`` atomically (temporary name, then rename)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_bytes(path, buf.getvalue())
 
 
 def load_latest(directory: Path) -> dict | None:

@@ -7,8 +7,6 @@ held-out split go to the stage metrics. Output per model (``<out>/x``, ``<out>/y
 """
 from __future__ import annotations
 
-import io
-import shutil
 from pathlib import Path
 from typing import Callable
 
@@ -16,11 +14,11 @@ import numpy as np
 import torch
 
 from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, run_loop, seed_everything, steps_for
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ.config import AutoencoderConfig, VQVAEStageConfig, as_dict
 from typ.errors import TypError
-from typ.io import hash_obj, write_bytes, write_json
+from typ.io import hash_obj, write_json
 from typ.metrics import occupancy_iou
 
 KINDS = ("x", "y")
@@ -55,10 +53,7 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
     total = steps_for(ae.epochs, len(views), cfg.batch_size)
     key = hash_obj({"ae": as_dict(ae), "lr": cfg.lr, "batch": cfg.batch_size, "seed": cfg.seed,
                     "data": [list(k) for k in views.keys], "grid": views.grid.to_dict()})[:16]
-    ckpt_root = out / kind / "checkpoints"
-    for old in ckpt_root.glob("*"):
-        if old.name != key:
-            shutil.rmtree(old, ignore_errors=True)
+    ckpt_dir = run_checkpoint_dir(out / kind / "checkpoints", key)
 
     def step_fn(step: int) -> dict[str, float]:
         rng = batch_rng(cfg.seed, step)
@@ -75,16 +70,14 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
     run_loop(name=f"vqvae-{kind}", total_steps=total, step_fn=step_fn,
              get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
              set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_root / key, checkpoint_every=cfg.checkpoint_every,
+             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
              log_fn=lambda values, step: log_fn({f"{kind}.{k}": v for k, v in values.items()}, step))
     save_model(model, out / kind)
     return model
 
 
 def save_model(model: BEVVQVAE, folder: Path) -> None:
-    buf = io.BytesIO()
-    torch.save({"config": model.config, "state_dict": model.state_dict()}, buf)
-    write_bytes(folder / "model.pt", buf.getvalue())
+    save_torch(folder / "model.pt", {"config": model.config, "state_dict": model.state_dict()})
     write_json(folder / "config.json", model.config)
 
 
