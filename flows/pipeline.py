@@ -17,12 +17,13 @@ def _flows() -> dict[str, Callable]:
     from flows.simulate import simulate_flow
     from flows.voxelize import voxelize_flow
     from flows.adapt import adapt_flow
+    from flows.generate import generate_flow
     from flows.stage1 import stage1_flow
     from flows.stage2 import stage2_flow
     from flows.vqvae import vqvae_flow
 
     return {"simulate": simulate_flow, "voxelize": voxelize_flow, "vqvae": vqvae_flow, "stage1": stage1_flow,
-            "adapt": adapt_flow, "stage2": stage2_flow}
+            "adapt": adapt_flow, "stage2": stage2_flow, "generate": generate_flow}
 
 
 STAGES = Config.STAGES

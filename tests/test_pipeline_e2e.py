@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -32,6 +33,7 @@ SMALL = {
                "unet": {"block_out_channels": [16, 16, 16, 16]}},
     "adapt": {"epochs": 1, "disc_width": 8, "checkpoint_every": 1, "eval_views": 2},
     "stage2": {"epochs": 1, "checkpoint_every": 1, "eval_pairs": 2},
+    "generate": {"references_per_frame": 1, "sample_steps": 3},
 }
 
 
@@ -130,6 +132,30 @@ def test_training_stages_write_models_and_metrics(project):
     for method in ("naive_copy", "stage1_only", "typ"):
         assert 0.0 <= s2[method]["iou"] <= 1.0
     assert (proj / "artifacts" / "stage2" / "adapter.pt").exists()
+
+
+def test_generated_dataset_is_opv2v_with_a_second_agent(project):
+    from typ.formats.opv2v import list_agents, list_timestamps, read_scene
+
+    proj, _, _ = project
+    gen = json.loads((proj / "metrics" / "generate.json").read_text())
+    assert gen["frames"] == 2 and gen["references"] + gen["scenario_without_candidate_vehicle"] >= 1
+    source = proj / "data" / "sim" / "target" / "test" / "target_test_0000"
+    folder = proj / "data" / "generated" / "target" / "test" / "target_test_0000"
+    assert list_timestamps(folder) == list_timestamps(source)
+    ego_id = list_agents(source)[0]
+    assert list_agents(folder)[0] == ego_id  # OpenCOOD still picks the real ego
+    for ts in list_timestamps(folder):
+        scene = read_scene(folder, ts)
+        original = read_scene(source, ts, agents=[ego_id])
+        assert np.array_equal(scene.agents[ego_id].points, original.ego.points)  # the real ego, untouched
+        for agent_id, view in scene.agents.items():
+            if agent_id != ego_id:
+                assert len(view.points) > 0 and np.isfinite(view.points).all()
+                # the reference stands on a labelled vehicle of the ego's frame
+                assert agent_id.startswith(ego_id)
+                assert int(agent_id[len(ego_id):]) in set(original.ego.box_ids.tolist())
+    assert gen["references"] >= 1
 
 
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):

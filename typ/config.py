@@ -275,6 +275,33 @@ class Stage2Config:
 
 
 @dataclass(frozen=True)
+class GenerateConfig:
+    """Stage ``generate`` (TYP §4.5): reference views for single-agent frames, written as OPV2V agents."""
+
+    references_per_frame: int
+    min_distance: float
+    max_distance: float
+    sampler: Literal["ddim", "ddpm", "dpmsolver++", "unipc"]
+    sample_steps: int
+    seed: int
+    input: str
+    dataset: str
+    split: str
+    vqvae: str
+    stage1: str
+    stage2: str
+    out: str
+    workers: int
+
+    def check(self, where: str, name: str) -> None:
+        for key in ("references_per_frame", "sample_steps", "max_distance", "workers"):
+            _positive(where, f"{name}.{key}", getattr(self, key))
+        if not 0 <= self.min_distance < self.max_distance:
+            raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
+                           self.min_distance)
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """Where runs are logged; ``MLFLOW_TRACKING_URI`` in the environment wins over ``uri``."""
 
@@ -296,10 +323,11 @@ class Config:
     stage1: Stage1Config
     adapt: AdaptConfig
     stage2: Stage2Config
+    generate: GenerateConfig
     source: str = field(default="params.yaml", compare=False)
 
     #: stage name -> attribute holding its block, in pipeline order
-    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2")
+    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2", "generate")
 
     def block(self, stage: str):
         if stage not in self.STAGES:
