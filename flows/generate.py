@@ -4,13 +4,13 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import torch
 from diffusers import T2IAdapter
 from prefect import flow
 
 from flows.common import per_scene_stage
 from tasks import generate as stage
 from tasks import stage1
+from tasks.training import load_torch
 from tasks.vqvae import load_model as load_vqvae
 from typ.config import load_config
 from typ.errors import TypError
@@ -29,7 +29,7 @@ def load_models(root: Path, cfg) -> stage.Models:
         if not p.exists():
             raise TypError(p, "file", "a trained model (run the earlier stages first: dvc repro)", "missing")
     ldm, saved = stage1.load_model(root / block.stage1)
-    adapter_saved = torch.load(paths[3], map_location="cpu", weights_only=False)
+    adapter_saved = load_torch(paths[3], "stage-2 adapter (run the stage2 stage")
     adapter = T2IAdapter(in_channels=ldm.config["latent_channels"], channels=list(ldm.config["block_out_channels"]),
                          num_res_blocks=adapter_saved["config"]["adapter_res_blocks"], downscale_factor=1,
                          adapter_type="full_adapter")

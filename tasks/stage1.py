@@ -21,7 +21,7 @@ from models.postprocess import postprocess
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
+from tasks.training import batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
@@ -157,10 +157,7 @@ def save_model(model: LatentDiffusion, cfg: Stage1Config, thresholds: dict, fold
 
 
 def load_model(folder: Path) -> tuple[LatentDiffusion, dict]:
-    path = folder / "model.pt"
-    if not path.exists():
-        raise TypError(path, "file", "a trained stage-1 model (run the stage1 stage first)", "missing")
-    saved = torch.load(path, map_location="cpu", weights_only=False)
+    saved = load_torch(folder / "model.pt", "stage-1 model (run the stage1 stage")
     model = LatentDiffusion.from_config(saved["config"])
     model.load_state_dict(saved["state_dict"])
     return model.eval(), saved

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from typ.errors import TypError
 from typ.io import write_bytes
 
 CKPT = re.compile(r"^step_(\d{8})\.pt$")
@@ -72,6 +73,13 @@ def save_torch(path: Path, obj: dict) -> None:
     buf = io.BytesIO()
     torch.save(obj, buf)
     write_bytes(path, buf.getvalue())
+
+
+def load_torch(path: Path, what: str) -> dict:
+    """Load a saved model file; a missing one names the stage that makes it."""
+    if not path.exists():
+        raise TypError(path, "file", f"a trained {what} first: dvc repro)", "missing")
+    return torch.load(path, map_location="cpu", weights_only=False)
 
 
 def load_latest(directory: Path) -> dict | None:

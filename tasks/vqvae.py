@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
+from tasks.training import batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ.config import AutoencoderConfig, VQVAEStageConfig, as_dict
 from typ.errors import TypError
@@ -82,10 +82,7 @@ def save_model(model: BEVVQVAE, folder: Path) -> None:
 
 
 def load_model(folder: Path) -> BEVVQVAE:
-    path = folder / "model.pt"
-    if not path.exists():
-        raise TypError(path, "file", "a trained VQ-VAE (run the vqvae stage first)", "missing")
-    saved = torch.load(path, map_location="cpu", weights_only=False)
+    saved = load_torch(folder / "model.pt", "VQ-VAE (run the vqvae stage")
     model = BEVVQVAE.from_config(saved["config"])
     model.load_state_dict(saved["state_dict"])
     return model.eval()

@@ -15,13 +15,7 @@ from models.warp import communication_mask, warp_bev
 from typ.geometry import pose_to_matrix, relative_transform, transform_boxes as np_transform_boxes, transform_points
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These models are tiny: a second OpenMP thread only thrashes when the 2 cores are shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _translation(x: float, y: float) -> np.ndarray:

@@ -14,13 +14,7 @@ from models.detection_loss import DetectionLoss
 from models.pointpillars import PillarFeatureNet, PointPillars, pillarize, scatter_to_bev
 from typ.errors import TypError
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These models are tiny: a second OpenMP thread only thrashes when the 2 cores are shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 RANGE = (-4.0, -2.0, -3.0, 4.0, 2.0, 1.0)          # 8 x 4 m, 1 m pillars -> nx = 8, ny = 4
