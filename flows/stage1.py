@@ -42,7 +42,7 @@ def stage1_flow(params: str = "params.yaml", root: str = ".") -> dict:
         metrics["seconds_training"] = round(timer.seconds, 3)
 
         def generate(views, seed):
-            views.keys, views.records = views.keys[:block.eval_views], views.records[:block.eval_views]
+            views = views.head(block.eval_views)
             x_true, _ = views.batch(np.arange(len(views)))
             _, y_lat = stage.encode_views(x_vq, y_vq, views)
             logits = stage.sample_logits(model, x_vq, y_lat, cfg=block, generator=torch.Generator().manual_seed(seed))

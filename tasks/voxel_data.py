@@ -37,6 +37,10 @@ class ViewSet:
     def __len__(self) -> int:
         return len(self.keys)
 
+    def head(self, n: int) -> "ViewSet":
+        """The first ``n`` views, as a new set."""
+        return ViewSet(self.grid, self.keys[:n], self.records[:n])
+
     def occupancy(self, index) -> np.ndarray:
         """(B, C, H, W) float32 occupancy x for the given view indices (height as channels)."""
         return np.stack([densify(self.records[i], self.grid)[0].transpose(2, 0, 1) for i in index]).astype(np.float32)

@@ -108,8 +108,7 @@ class AutoencoderConfig:
             raise TypError(where, f"{name}.block_out_channels",
                            f"positive widths divisible by norm_num_groups={self.norm_num_groups}",
                            list(self.block_out_channels))
-        for key in ("latent_channels", "num_codes", "norm_num_groups", "epochs"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "latent_channels", "num_codes", "norm_num_groups", "epochs")
         if self.gamma < 0:
             raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0 (0 is plain BCE)", self.gamma)
 
@@ -138,8 +137,7 @@ class VQVAEStageConfig:
             raise TypError(where, f"{name}.y.block_out_channels",
                            "as many levels as x (x^f and y^f must share one latent resolution)",
                            list(self.y.block_out_channels))
-        for key in ("batch_size", "lr", "checkpoint_every"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "batch_size", "lr", "checkpoint_every")
         if not 0 < self.threshold < 1:
             raise TypError(where, f"{name}.threshold", "a probability in (0, 1)", self.threshold)
 
@@ -160,8 +158,8 @@ class UNetConfig:
             raise TypError(where, f"{name}.block_out_channels",
                            f">= 2 positive widths divisible by norm_num_groups={self.norm_num_groups}",
                            list(self.block_out_channels))
-        for key in ("layers_per_block", "cross_attention_dim", "attention_head_dim", "norm_num_groups"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "layers_per_block", "cross_attention_dim", "attention_head_dim",
+                         "norm_num_groups")
 
 
 @dataclass(frozen=True)
@@ -206,8 +204,8 @@ class Stage1Config:
     def check(self, where: str, name: str) -> None:
         self.unet.check(where, f"{name}.unet")
         self.postprocess.check(where, f"{name}.postprocess")
-        for key in ("train_timesteps", "epochs", "batch_size", "lr", "checkpoint_every", "eval_views"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "train_timesteps", "epochs", "batch_size", "lr", "checkpoint_every",
+                         "eval_views")
         if not 1 <= self.sample_steps <= self.train_timesteps:
             raise TypError(where, f"{name}.sample_steps", f"an integer in [1, train_timesteps={self.train_timesteps}]",
                            self.sample_steps)
@@ -240,9 +238,8 @@ class AdaptConfig:
     out: str
 
     def check(self, where: str, name: str) -> None:
-        for key in ("disc_width", "epochs", "batch_size", "lr", "lr_disc", "checkpoint_every", "max_disc_loss",
-                    "eval_views"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "disc_width", "epochs", "batch_size", "lr", "lr_disc", "checkpoint_every",
+                         "max_disc_loss", "eval_views")
         if self.gamma < 0:
             raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0", self.gamma)
 
@@ -270,8 +267,8 @@ class Stage2Config:
     out: str
 
     def check(self, where: str, name: str) -> None:
-        for key in ("adapter_res_blocks", "epochs", "batch_size", "lr", "checkpoint_every", "eval_pairs"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "adapter_res_blocks", "epochs", "batch_size", "lr", "checkpoint_every",
+                         "eval_pairs")
 
 
 @dataclass(frozen=True)
@@ -294,8 +291,7 @@ class GenerateConfig:
     workers: int
 
     def check(self, where: str, name: str) -> None:
-        for key in ("references_per_frame", "sample_steps", "max_distance", "workers"):
-            _positive(where, f"{name}.{key}", getattr(self, key))
+        _positive_fields(self, where, name, "references_per_frame", "sample_steps", "max_distance", "workers")
         if not 0 <= self.min_distance < self.max_distance:
             raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
                            self.min_distance)
@@ -338,6 +334,12 @@ class Config:
 def _positive(where: str, name: str, value) -> None:
     if not value > 0:
         raise TypError(where, name, "a value > 0", value)
+
+
+def _positive_fields(block, where: str, name: str, *keys: str) -> None:
+    """Every ``block.<key>`` must be > 0; the error names ``<name>.<key>``."""
+    for key in keys:
+        _positive(where, f"{name}.{key}", getattr(block, key))
 
 
 # ---------------------------------------------------------------- loading
