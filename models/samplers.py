@@ -58,6 +58,12 @@ def _check_betas(betas: object, num_train_timesteps: int | None) -> np.ndarray:
     if num_train_timesteps is not None and num_train_timesteps != b.size:
         # diffusers would silently index past or short of trained_betas
         raise TypError(WHERE, "betas", f"length num_train_timesteps = {num_train_timesteps}", b.size)
+    # diffusers keeps ᾱ in float32: once it rounds to 0, x̂_0 divides by √ᾱ = 0 and every
+    # sample turns NaN, which would surface only after the whole sampling loop
+    abar_last = np.prod(1.0 - b.astype(np.float32), dtype=np.float32)
+    if not abar_last > 0.0:
+        raise TypError(WHERE, "betas", "a schedule whose ᾱ_T = ∏(1 - β) stays > 0 in float32 "
+                       "(diffusers' precision)", f"ᾱ_T = {np.prod(1.0 - b):.3g}")
     return b
 
 

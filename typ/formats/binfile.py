@@ -13,8 +13,9 @@ import numpy as np
 
 from typ.errors import TypError
 
-#: Coordinates beyond this (metres) are not LiDAR returns: the bytes are not float32 LE.
-MAX_ABS_COORDINATE = 1e5
+#: Coordinates beyond this (metres) are not LiDAR returns in the sensor's own frame (the
+#: longest-range automotive sensors see ~1 km): the bytes are not float32 LE, or not metres.
+MAX_ABS_COORDINATE = 1e4
 
 
 def read_bin(path: str | os.PathLike, columns: int) -> np.ndarray:
@@ -23,7 +24,7 @@ def read_bin(path: str | os.PathLike, columns: int) -> np.ndarray:
     The first three columns are x, y, z in metres (the file's own sensor frame); the
     rest are passed through unchanged. Raises TypError for a missing or unreadable
     file, a size that is not a whole number of points, an empty cloud, coordinates
-    beyond ``MAX_ABS_COORDINATE`` (wrong dtype or byte order) and NaN/Inf values.
+    beyond ``MAX_ABS_COORDINATE`` (wrong dtype, byte order or units) and NaN/Inf values.
     """
     p = Path(path)
     if columns < 3:
@@ -48,7 +49,8 @@ def read_bin(path: str | os.PathLike, columns: int) -> np.ndarray:
     if absurd.any():
         raise TypError(p, "dtype", f"float32 little-endian with |x|, |y|, |z| <= {MAX_ABS_COORDINATE:g} m",
                        f"{int(absurd.any(axis=1).sum())} of {len(cloud)} points beyond that "
-                       f"(max {float(np.abs(xyz[absurd]).max()):.3g}); the file may be float64 or big-endian")
+                       f"(max {float(np.abs(xyz[absurd]).max()):.3g}); the file may be float64, big-endian "
+                       "or in millimetres")
     bad_rows = ~np.isfinite(cloud).all(axis=1)
     if bad_rows.any():
         bad_cols = np.flatnonzero(~np.isfinite(cloud).all(axis=0)).tolist()

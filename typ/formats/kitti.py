@@ -20,6 +20,8 @@ from typ.scene import AgentView, Scene
 
 _CALIB_SHAPES = {"R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
 _LABEL_FIELDS = 15  # type truncated occluded alpha x1 y1 x2 y2 h w l x y z rotation_y (+ score)
+#: No labelled object is longer than this (metres): larger sizes are centimetres or garbage.
+MAX_BOX_SIZE = 100.0
 
 
 def read_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -90,8 +92,13 @@ def read_labels(path: str | os.PathLike, calib: dict[str, np.ndarray]) -> tuple[
         except ValueError:
             raise TypError(p, f"line {number}", "numbers in fields 9-15 (h w l x y z rotation_y)",
                            parts[8:15]) from None
+        if not all(np.isfinite([h, w, l, x, y, z, ry])):
+            raise TypError(p, f"line {number}", "finite numbers in fields 9-15 (h w l x y z rotation_y)",
+                           parts[8:15])
         if min(h, w, l) <= 0:
             raise TypError(p, f"line {number}", "positive h, w, l", (h, w, l))
+        if max(h, w, l) > MAX_BOX_SIZE:
+            raise TypError(p, f"line {number}", f"h, w, l <= {MAX_BOX_SIZE:g} m (metres, not centimetres)", (h, w, l))
         centre = rect_to_velo @ np.array([x, y - h / 2.0, z, 1.0])
         boxes.append([*centre[:3], l, w, h, float(geometry.wrap_angle(-ry - np.pi / 2.0))])
         labels.append(parts[0].lower())

@@ -30,21 +30,29 @@ def read_nuscenes_frame(pcd_bin_path: str | os.PathLike, info_json_path: str | o
     info, categories = _find_record(info_path, bin_path.name)
     cloud = read_bin(bin_path, 5)
     points = np.concatenate([cloud[:, :3], cloud[:, 3:4] / np.float32(255.0)], axis=1).astype(np.float32)
-    lidar = info.get("lidar_points", {})
+    lidar = info["lidar_points"]
     pose = _matrix(info_path, "ego2global", info.get("ego2global")) @ \
         _matrix(info_path, "lidar_points.lidar2ego", lidar.get("lidar2ego"))
     names = {index: name for name, index in categories.items()}
+    instances = info.get("instances", [])
+    if not isinstance(instances, list):
+        raise TypError(info_path, "instances", "a list of instance records", type(instances).__name__)
     boxes, labels, ids = [], [], []
-    for k, inst in enumerate(info.get("instances", [])):
+    for k, inst in enumerate(instances):
+        if not isinstance(inst, dict):
+            raise TypError(info_path, f"instances[{k}]", "a mapping with bbox_label_3d and bbox_3d", inst)
         label = inst.get("bbox_label_3d", inst.get("bbox_label"))
         if label == -1:
             continue
-        if label not in names:
+        if isinstance(label, bool) or not isinstance(label, int) or label not in names:
             raise TypError(info_path, f"instances[{k}].bbox_label_3d", f"a category index in {sorted(names)} or -1",
                            label)
         box = inst.get("bbox_3d")
-        if not isinstance(box, list) or len(box) != 7 or not all(isinstance(v, (int, float)) for v in box):
+        if not isinstance(box, list) or len(box) != 7 or \
+                not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box):
             raise TypError(info_path, f"instances[{k}].bbox_3d", "7 numbers [x, y, z, l, w, h, yaw]", box)
+        if not np.isfinite(box).all():
+            raise TypError(info_path, f"instances[{k}].bbox_3d", "7 finite numbers [x, y, z, l, w, h, yaw]", box)
         boxes.append(box)
         labels.append(names[label])
         ids.append(k)
@@ -64,11 +72,15 @@ def _find_record(info_path: Path, bin_name: str) -> tuple[dict, dict[str, int]]:
         raise TypError(info_path, "file", "a readable JSON file", f"{type(exc).__name__}: {exc}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("data_list"), list):
         raise TypError(info_path, "data_list", "a list of info records (mmdet3d v1.x)", "missing")
-    categories = doc.get("metainfo", {}).get("categories")
+    metainfo = doc.get("metainfo")
+    categories = metainfo.get("categories") if isinstance(metainfo, dict) else None
     if not isinstance(categories, dict) or not categories:
         raise TypError(info_path, "metainfo.categories", "a mapping of class name -> label index", categories)
-    for record in doc["data_list"]:
-        if Path(str(record.get("lidar_points", {}).get("lidar_path", ""))).name == bin_name:
+    for k, record in enumerate(doc["data_list"]):
+        if not isinstance(record, dict) or not isinstance(record.get("lidar_points"), dict):
+            raise TypError(info_path, f"data_list[{k}]", "a mapping with lidar_points {lidar_path, lidar2ego}",
+                           record if not isinstance(record, dict) else record.get("lidar_points"))
+        if Path(str(record["lidar_points"].get("lidar_path", ""))).name == bin_name:
             return record, categories
     raise TypError(info_path, "data_list[].lidar_points.lidar_path", f"a record for {bin_name}",
                    f"{len(doc['data_list'])} records, none for that file")

@@ -13,7 +13,8 @@ sidecar file is needed.
 field order, with PCL's per-field COUNT. Intensity comes from an ``intensity`` field
 if there is one (taken as is), else from the R of ``rgb``/``rgba`` (divided by 255),
 else it is 0. Rows whose x, y or z is NaN/Inf are dropped: PCL writes them for the
-invalid pixels of organised (``is_dense = false``) clouds.
+invalid pixels of organised (``is_dense = false``) clouds. Coordinates beyond
+:data:`~typ.formats.binfile.MAX_ABS_COORDINATE` are rejected (millimetres or a world frame).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from typ.errors import TypError
+from typ.formats.binfile import MAX_ABS_COORDINATE
 from typ.io import write_bytes
 
 _NUMPY_TYPE = {("F", 4): "<f4", ("F", 8): "<f8",
@@ -247,6 +249,12 @@ def _to_points(p: Path, columns: dict[str, np.ndarray], n: int) -> tuple[np.ndar
             raise TypError(p, "semantic", "unsigned integer codes 0..255", sem.dtype)
         semantics = sem.astype(np.uint8)
     keep = np.isfinite(xyz).all(axis=1)
+    far = keep & (np.abs(xyz) > MAX_ABS_COORDINATE).any(axis=1)
+    if far.any():
+        raise TypError(p, "points",
+                       f"x, y, z in metres in the sensor frame, |x|, |y|, |z| <= {MAX_ABS_COORDINATE:g} m",
+                       f"{int(far.sum())} of {n} points beyond that (max {float(np.abs(xyz[far]).max()):.3g}); "
+                       "the cloud may be in millimetres or in a world frame")
     points = np.concatenate([xyz, intensity[:, None]], axis=1)
     if not np.isfinite(points[keep, 3]).all():
         raise TypError(p, "intensity", "finite values", "NaN/Inf")

@@ -144,6 +144,7 @@ def read_waymo_frames(path: str | os.PathLike) -> list[Scene]:
     boxes: ``laser_labels`` (K, 7) ``[center_x, center_y, center_z, length, width, height, heading]``;
     labels are the type names lower-cased without ``TYPE_`` (vehicle, pedestrian, sign, cyclist);
     box ids are a stable 63-bit hash of the label's string id.
+    A file with no record, and NaN/Inf range or intensity pixels, raise TypError.
     """
     from waymo_open_dataset import dataset_pb2, label_pb2
 
@@ -164,6 +165,8 @@ def read_waymo_frames(path: str | os.PathLike) -> list[Scene]:
                          boxes=boxes, box_labels=labels, box_ids=ids, where=where)
         scenes.append(Scene(scenario=frame.context.name, timestamp=str(frame.timestamp_micros),
                             agents={"ego": view}, dataset="waymo"))
+    if not scenes:
+        raise TypError(path, "records", "at least one Frame record", "an empty file")
     return scenes
 
 
@@ -221,11 +224,19 @@ def _frame_points(where: str, frame, frame_pose: np.ndarray, dataset_pb2) -> np.
             if ret.range_image_compressed:
                 image = _matrix_float(where, field, ret.range_image_compressed, dataset_pb2, 3)
             elif len(ret.range_image.data):  # the deprecated uncompressed field
-                image = np.array(ret.range_image.data, dtype=np.float32).reshape(tuple(ret.range_image.shape.dims))
+                dims = tuple(ret.range_image.shape.dims)
+                if len(dims) != 3 or np.prod(dims) != len(ret.range_image.data):
+                    raise TypError(where, f"{field}.range_image", "a 3-d matrix whose shape matches its data",
+                                   f"shape {dims}, {len(ret.range_image.data)} values")
+                image = np.array(ret.range_image.data, dtype=np.float32).reshape(dims)
             else:
                 continue
             if image.shape[2] < 2:
                 raise TypError(where, field, "range image channels [range, intensity, ...]", image.shape)
+            bad = ~np.isfinite(image[..., :2]).all(axis=-1)
+            if bad.any():
+                raise TypError(where, field, "finite range and intensity in every pixel",
+                               f"NaN/Inf in {int(bad.sum())} of {bad.size} pixels")
             height = image.shape[0]
             if len(calib.beam_inclinations):
                 inclinations = np.array(calib.beam_inclinations, dtype=np.float64)

@@ -1,0 +1,268 @@
+"""Crash safety: ``kill -9`` a stage mid-way, rerun it, and get what an uninterrupted run gets.
+
+A throwaway project (tiny params, 5 target scenarios) runs the stages through the CLI
+(``typ.cli.main``) in subprocesses. Each stage is killed with SIGKILL (its whole process group)
+as soon as its first output is complete, then rerun:
+
+- simulate and voxelize: after the kill every file under a final name is byte-identical to the
+  uninterrupted run's (nothing half-written), and after the rerun the output trees are equal
+  byte for byte, with no temporary left;
+- vqvae (training): after the kill every visible checkpoint loads; the rerun resumes from the
+  newest one and the final models equal the uninterrupted run's (tolerance below).
+
+The stage processes share one Prefect server and one MLflow database, started once per test
+session (tests/test_determinism.py and the CLI case of tests/test_bad_inputs.py use the same
+helpers, and the determinism test compares with the same uninterrupted run), so each process
+pays only its imports. The training stage is slow (two more processes): it runs with TYP_SLOW=1.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+TMP_PREFIX = ".tmp-"
+SLOW = bool(os.environ.get("TYP_SLOW"))
+slow = pytest.mark.skipif(not SLOW, reason="slow: runs with TYP_SLOW=1")
+#: what the uninterrupted run and the crashed run go through
+STAGES = ("simulate", "voxelize", "vqvae") if SLOW else ("simulate", "voxelize")
+
+SMALL = {
+    "profile": "tiny",
+    "simulate": {"frames": 2, "azimuth_step_deg": 0.5, "agents_min": 2, "agents_max": 2, "workers": 1,
+                 "scenarios": {"source": {"train": 0, "test": 0}, "target": {"train": 4, "val": 0, "test": 1},
+                               "real_cav": {"train": 0, "test": 0}}},
+    "voxelize": {"workers": 1},
+    "vqvae": {"x": {"epochs": 3, "block_out_channels": [8, 16, 16, 16]},
+              "y": {"epochs": 3, "block_out_channels": [8, 16, 16, 16]}, "checkpoint_every": 1},
+}
+#: final models of a resumed run against an uninterrupted one (max |Δ| over every weight):
+#: batches are a function of (seed, step) and the optimizer state is in the checkpoint, so on
+#: one CPU thread the two agree exactly; the tolerance only leaves room for other BLAS builds
+MODEL_ATOL = 1e-6
+
+
+# --- the helpers both crash and determinism tests use ----------------------------------------
+
+class PrefectServer:
+    """``prefect server start`` (no UI) in its own process group, state under ``home``."""
+
+    def __init__(self, home: Path):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        self.api_url = f"http://127.0.0.1:{port}/api"
+        home.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+               "DO_NOT_TRACK": "1", "OMP_NUM_THREADS": "1"}
+        env.pop("PREFECT_API_URL", None)
+        self.log = home / "server.log"
+        with open(self.log, "wb") as out:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port),
+                 "--no-ui", "--analytics-off"], env=env, stdout=out, stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL, start_new_session=True)
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"prefect server exited: {self.log.read_text()[-2000:]}")
+            try:
+                with urllib.request.urlopen(f"{self.api_url}/health", timeout=2) as response:
+                    if response.status == 200:
+                        return
+            except OSError:
+                time.sleep(0.5)
+        self.stop()
+        raise RuntimeError(f"prefect server not healthy after 300 s: {self.log.read_text()[-2000:]}")
+
+    def stop(self) -> None:
+        try:
+            os.killpg(self.process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.process.wait()
+
+
+_ENV = pytest.StashKey[dict]()
+_UNINTERRUPTED = pytest.StashKey[Path]()
+
+
+def stage_env(config: pytest.Config, tmp_path_factory) -> dict:
+    """Environment for stage processes: one Prefect server and one MLflow database per session."""
+    if _ENV not in config.stash:
+        home = tmp_path_factory.mktemp("services")
+        server = PrefectServer(home / "prefect")
+        config.add_cleanup(server.stop)
+        config.stash[_ENV] = {
+            **os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+            "PREFECT_API_URL": server.api_url, "PREFECT_HOME": str(home / "prefect"),
+            "PREFECT_LOGGING_LEVEL": "WARNING", "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
+            "MLFLOW_TRACKING_URI": f"sqlite:///{home / 'mlruns.db'}", "DVC_NO_ANALYTICS": "1",
+            "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    return config.stash[_ENV]
+
+
+def uninterrupted_run(config: pytest.Config, tmp_path_factory) -> Path:
+    """The project after one uninterrupted run of :data:`STAGES` (PYTHONHASHSEED=1), once per session."""
+    if _UNINTERRUPTED not in config.stash:
+        root = make_project(tmp_path_factory.mktemp("uninterrupted"))
+        run_stages(root, stage_env(config, tmp_path_factory), *STAGES, extra_env={"PYTHONHASHSEED": "1"})
+        config.stash[_UNINTERRUPTED] = root
+    return config.stash[_UNINTERRUPTED]
+
+
+@pytest.fixture(scope="module")
+def services(request, tmp_path_factory):
+    return stage_env(request.config, tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def reference(request, services, tmp_path_factory):
+    return uninterrupted_run(request.config, tmp_path_factory)
+
+
+def make_project(root: Path, params: dict = SMALL) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    return root
+
+
+#: runs ``typ run <stage>`` for each stage in turn in one process; stops at the first failure
+DRIVER = """
+import sys
+from typ.cli import main
+root, stages = sys.argv[1], sys.argv[2:]
+for stage in stages:
+    code = main(["--root", root, "run", stage])
+    if code:
+        sys.exit(code)
+"""
+
+
+def start_stages(root: Path, env: dict, *stages: str, extra_env: dict | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", DRIVER, str(root), *stages], cwd=root,
+                            env={**env, **(extra_env or {})}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+
+
+def run_stages(root: Path, env: dict, *stages: str, extra_env: dict | None = None) -> str:
+    proc = start_stages(root, env, *stages, extra_env=extra_env)
+    out, _ = proc.communicate(timeout=600)
+    assert proc.returncode == 0, f"{stages} failed ({proc.returncode}):\n{out[-5000:]}"
+    return out
+
+
+def kill_when(proc: subprocess.Popen, done, *, timeout: float = 600) -> None:
+    """SIGKILL the process group as soon as ``done()`` is true; fail if the process ends first."""
+    deadline = time.monotonic() + timeout
+    while not done():
+        if proc.poll() is not None:
+            out = proc.stdout.read()
+            pytest.fail(f"the stage ended ({proc.returncode}) before it could be killed mid-way:\n{out[-3000:]}")
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+
+
+def tree(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (relative path -> bytes)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def final_names(folder: Path) -> dict[str, bytes]:
+    """Files under ``folder`` whose path has no hidden (temporary) part."""
+    return {rel: data for rel, data in tree(folder).items()
+            if not any(part.startswith(".") for part in Path(rel).parts)}
+
+
+# --- the tests --------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def crashed(services, reference, tmp_path_factory):
+    """The same stages, each killed once mid-way and then rerun; the state seen right after each kill."""
+    root = make_project(tmp_path_factory.mktemp("crashed"))
+    seen = {}
+    sim, vox = root / "data" / "sim", root / "data" / "voxels"
+    scenarios = lambda: [p for p in sim.glob("*/*/*") if p.is_dir() and not p.name.startswith(".")]  # noqa: E731
+    scenes = lambda: [p for p in vox.glob("*/*/*.parquet") if not p.name.startswith(".")]  # noqa: E731
+    checkpoints = lambda: list((root / "artifacts" / "vqvae" / "x" / "checkpoints").glob("*/step_*.pt"))  # noqa: E731
+
+    kill_when(start_stages(root, services, "simulate"), lambda: scenarios())
+    seen["simulate"] = final_names(sim)
+    # the rerun of simulate completes; voxelize is killed after its first scene
+    kill_when(start_stages(root, services, "simulate", "voxelize"), lambda: scenes())
+    seen["voxelize"] = final_names(vox)
+    if "vqvae" not in STAGES:
+        run_stages(root, services, "voxelize")
+        return root, seen
+    kill_when(start_stages(root, services, "voxelize", "vqvae"), lambda: checkpoints())
+    seen["vqvae"] = {str(p.relative_to(root)): _loads(p) for p in sorted((root / "artifacts").rglob("*.pt"))
+                     if not any(part.startswith(".") for part in p.relative_to(root).parts)}
+    run_stages(root, services, "vqvae")
+    return root, seen
+
+
+def _loads(path: Path) -> str:
+    """'ok' if torch can load the file, else the error."""
+    import torch
+
+    try:
+        torch.load(path, map_location="cpu", weights_only=False)
+        return "ok"
+    except Exception as exc:  # noqa: BLE001 - a half-written file fails in many ways
+        return f"{type(exc).__name__}: {exc}"
+
+
+@pytest.mark.parametrize("stage, folder", [("simulate", "data/sim"), ("voxelize", "data/voxels")])
+def test_killed_stage_shows_only_whole_files(reference, crashed, stage, folder):
+    root, seen = crashed
+    expected = final_names(reference / folder)
+    partial = seen[stage]
+    assert partial, f"{stage}: nothing finished before the kill"
+    assert len(partial) < len(expected), f"{stage} was not killed mid-way"
+    for rel, data in partial.items():
+        assert rel in expected and data == expected[rel], f"{stage}: {rel} differs from the uninterrupted run"
+
+
+@pytest.mark.parametrize("folder", ["data/sim", "data/voxels"])
+def test_rerun_after_kill_equals_uninterrupted_byte_for_byte(reference, crashed, folder):
+    root, _ = crashed
+    got, expected = tree(root / folder), tree(reference / folder)
+    assert not [rel for rel in got if TMP_PREFIX in rel], "temporaries left after the rerun"
+    assert sorted(got) == sorted(expected)
+    assert [rel for rel in got if got[rel] != expected[rel]] == []
+
+
+@pytest.mark.slow
+@slow
+def test_killed_training_resumes_to_the_uninterrupted_model(reference, crashed):
+    import torch
+
+    from tasks.training import checkpoints
+
+    root, seen = crashed
+    after_kill = seen["vqvae"]
+    assert any("/checkpoints/" in rel for rel in after_kill)
+    assert "artifacts/vqvae/x/model.pt" not in after_kill, "x finished training before the kill"
+    assert {rel: state for rel, state in after_kill.items() if state != "ok"} == {}  # every visible file is whole
+    for kind in ("x", "y"):
+        run_dirs = list((root / "artifacts" / "vqvae" / kind / "checkpoints").iterdir())
+        assert len(run_dirs) == 1 and checkpoints(run_dirs[0]), kind
+        got = torch.load(root / "artifacts" / "vqvae" / kind / "model.pt", weights_only=False)["state_dict"]
+        want = torch.load(reference / "artifacts" / "vqvae" / kind / "model.pt", weights_only=False)["state_dict"]
+        assert got.keys() == want.keys()
+        worst = max((got[k].double() - want[k].double()).abs().max().item() for k in got if got[k].numel())
+        assert worst <= MODEL_ATOL, (kind, worst)
+    assert not [p for p in (root / "artifacts").rglob(f"{TMP_PREFIX}*")], "temporaries left after the rerun"
