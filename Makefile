@@ -16,7 +16,7 @@ export DVC_NO_ANALYTICS := 1
 export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlruns.db
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: run test bench setup clean
+.PHONY: run test bench serve setup clean
 
 setup: $(STAMP)
 
@@ -44,11 +44,20 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# sampling needs the trained models of `make run` (artifacts/); voxelize needs nothing
+# sampling needs the trained models of `make run` (artifacts/), pipeline its metrics (the
+# default data's skipping; its dvc runs are in a throwaway copy); voxelize needs nothing.
+# report.py gathers every reports/bench_*.md into reports/bench.md.
 bench: $(STAMP)
 	$(BIN)/python bench/voxelize.py --out reports
 	test -f artifacts/stage1/model.pt || $(BIN)/dvc repro
 	$(BIN)/python bench/sampling.py --out reports
+	$(BIN)/python bench/pipeline.py --out reports
+	$(BIN)/python bench/report.py --out reports
+
+# the scheduled Prefect deployments on a local server (http://127.0.0.1:4200), or on the
+# server / Prefect Cloud that PREFECT_API_URL names; Ctrl-C stops both
+serve: $(STAMP)
+	$(BIN)/typ serve
 
 clean:
 	rm -rf $(VENV) .prefect

@@ -2,11 +2,12 @@
 metrics written for DVC."""
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from prefect import task
 from prefect.cache_policies import NO_CACHE
@@ -20,6 +21,10 @@ from typ.io import remove_stale_temporaries, write_json
 from typ.tracking import stage_run
 
 log = logging.getLogger("typ")
+
+
+#: retries of a per-scene task after a transient I/O error (backoff 1 s, then 4 s)
+IO_RETRIES = 2
 
 
 class StageFailed(RuntimeError):
@@ -53,23 +58,82 @@ def per_scene(fn: Callable, items: Sequence, *, label: Callable[[object], str], 
     return results
 
 
+#: OSErrors that say the input is wrong, not that the disk, network or worker hiccuped
+DETERMINISTIC_OS_ERRORS = (FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
+                           PermissionError)
+
+
 def _retry_unless_bad_input(task, task_run, state) -> bool:
+    """Retry transient I/O failures only: an OSError (EIO, a stale NFS handle, a dropped
+    connection, a timeout) that is not one of :data:`DETERMINISTIC_OS_ERRORS`. Bad input
+    (TypError) and bugs (any other exception) fail the same way every time."""
     try:
         state.result()
     except TypError:
         return False
-    except Exception:
+    except DETERMINISTIC_OS_ERRORS:
+        return False
+    except OSError:
         return True
+    except Exception:
+        return False
     return False
 
 
-def runner(workers: int) -> ThreadPoolTaskRunner:
-    return ThreadPoolTaskRunner(max_workers=workers)
+RUNNERS = ("thread", "dask")
+
+
+def runner(workers: int, kind: str = "thread", address: str | None = None):
+    """The task runner for per-scene fan-out.
+
+    ``thread``: Prefect's thread pool in this process. ``dask``: prefect-dask's DaskTaskRunner on
+    the cluster at ``address`` (``tcp://host:8786``), or on a LocalCluster of ``workers``
+    single-threaded processes when no address is given.
+    """
+    if kind == "thread":
+        if address:
+            raise TypError("typ run", "--address", "no address with --runner thread (only with --runner dask)", address)
+        return ThreadPoolTaskRunner(max_workers=workers)
+    if kind != "dask":
+        raise TypError("typ run", "--runner", f"one of {list(RUNNERS)}", kind)
+    from prefect_dask import DaskTaskRunner
+
+    if address:
+        return DaskTaskRunner(address=address)
+    return DaskTaskRunner(cluster_class="distributed.LocalCluster",
+                          cluster_kwargs={"n_workers": workers, "threads_per_worker": 1, "processes": True,
+                                          "dashboard_address": None})
+
+
+@contextlib.contextmanager
+def api_for_workers() -> Iterator[None]:
+    """One Prefect API for this process and its Dask workers.
+
+    Without ``PREFECT_API_URL`` Prefect starts a temporary server per process, so each Dask
+    worker process would start its own (seconds each, one sqlite file). Start the temporary
+    server here instead and hand its URL to the workers in the settings they receive. A
+    cluster on other machines needs a server they can reach: set ``PREFECT_API_URL``.
+    """
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    if PREFECT_API_URL.value():
+        yield
+        return
+    from prefect.server.api.server import SubprocessASGIServer
+
+    server = SubprocessASGIServer()  # the instance Prefect's own client would start
+    server.start()
+    with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
+        yield
 
 
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
+    """``metrics/<stage>.json`` for DVC; under torchrun only rank 0 writes it."""
+    from typ.distributed import is_main
+
     path = root / "metrics" / f"{stage}.json"
-    write_json(path, metrics)
+    if is_main():
+        write_json(path, metrics)
     return path
 
 
@@ -112,7 +176,7 @@ def per_scene_stage(stage: str, cfg: Config, root: Path, *, out: Path, plan: Cal
             for path in stale:
                 log.info("%s: removing %s: its input is gone", stage, path)
                 shutil.rmtree(path) if path.is_dir() else path.unlink()
-            results = per_scene(work, items, label=label, stage=stage, **work_kwargs)
+            results = per_scene(work, items, label=label, stage=stage, retries=IO_RETRIES, **work_kwargs)
         metrics = summarize(results)
         metrics.update(removed_stale=len(stale), removed_temporaries=cleaned, seconds_total=round(timer.seconds, 3))
         for r in results:

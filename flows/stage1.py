@@ -40,6 +40,9 @@ def stage1_flow(params: str = "params.yaml", root: str = ".") -> dict:
         with Timer() as timer:
             model = _task(stage.train, "train")(block, latents, cond, out=out, log_fn=run.metrics)
         metrics["seconds_training"] = round(timer.seconds, 3)
+        run.log_model("stage1-ldm", model, {"z_t": model.normalize(latents[:2]),
+                                            "t": torch.tensor([0, block.train_timesteps - 1]),
+                                            "cond": model.normalize_cond(cond[:2])})
 
         def generate(views, seed):
             views = views.head(block.eval_views)

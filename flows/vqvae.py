@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
@@ -33,6 +34,8 @@ def vqvae_flow(params: str = "params.yaml", root: str = ".") -> dict:
             scores = task(stage.evaluate, name=f"evaluate-{kind}", cache_policy=NO_CACHE)(
                 model, kind, held_out, threshold=block.threshold, batch_size=block.batch_size)
             metrics[kind] = {**scores, "seconds_training": round(timer.seconds, 3)}
+            x_example, y_example = train.batch(np.arange(min(2, len(train))))
+            run.log_model(f"vqvae-{kind}", model, x_example if kind == "x" else y_example, output="logits")
         path = write_metrics(STAGE, metrics, root_path)
         run.metrics(numeric_leaves(metrics))
         run.artifact(path)

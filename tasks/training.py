@@ -6,6 +6,9 @@
   place; the newest complete one is where a crashed run resumes. The last ``keep`` are kept.
 - A non-finite loss or gradient norm stops training with :class:`TrainingDiverged`; the last
   good checkpoint stays on disk and no broken model is written.
+- Under torchrun (:mod:`typ.distributed`) every rank starts from rank 0's state, gradients are
+  averaged over ranks at each optimizer step, the logged scalars are the mean over ranks, and
+  only rank 0 logs and writes checkpoints. Each step runs under the params' autocast precision.
 """
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from typ import distributed
 from typ.errors import TypError
 from typ.io import write_bytes
 
@@ -110,12 +114,20 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
     if saved is not None:
         set_state(saved)
         start = int(saved["step"])
+    if distributed.world_size() > 1:
+        shared = distributed.broadcast_object({"step": start, **get_state()})
+        set_state(shared)
+        start = shared["step"]
+    main = distributed.is_main()
     last: dict[str, float] = {}
-    with Progress(TextColumn(f"[bold]{name}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.description}")) as bar:
+    with distributed.synchronized_optimizers(), \
+            Progress(TextColumn(f"[bold]{name}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                     TextColumn("{task.description}"), disable=not main) as bar:
         task = bar.add_task("", total=total_steps, completed=start)
         for step in range(start, total_steps):
-            values = step_fn(step)
+            with distributed.autocast():
+                values = step_fn(step)
+            values = distributed.all_reduce_mean(values)
             bad = [k for k, v in values.items() if not math.isfinite(v)]
             if bad or values.get("grad_norm", 0.0) > grad_norm_limit:
                 kept = checkpoints(checkpoint_dir)
@@ -124,10 +136,10 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
                                        f"{[values[k] for k in bad] or values.get('grad_norm')}; "
                                        f"stopped, last good checkpoint: {where}")
             last = values
-            if log_fn is not None:
+            if log_fn is not None and main:
                 log_fn(values, step)
             done = step + 1
-            if done % checkpoint_every == 0 or done == total_steps:
+            if main and (done % checkpoint_every == 0 or done == total_steps):
                 save_checkpoint(checkpoint_dir, done, get_state())
             bar.update(task, advance=1, description=f"loss {values['loss']:.4f}")
     return LoopResult(total_steps - start, start, last)

@@ -3,14 +3,21 @@
 The store is a sqlite database in the project (``sqlite:///mlruns.db``) unless
 ``MLFLOW_TRACKING_URI`` says otherwise; artifacts go beside it under ``mlartifacts/``.
 A stage run started while ``TYP_PARENT_RUN_ID`` is set nests under that pipeline run.
+Under ``dvc exp run`` each stage's run is tagged with the experiment's name and baseline
+(``dvc.exp_name``, ``dvc.exp_baseline_rev``: DVC sets ``DVC_EXP_NAME`` / ``DVC_EXP_BASELINE_REV``
+for stage commands), and a relative store resolves against the main repo (``DVC_ROOT``), so
+experiments run in a temporary copy land in the project's store too. Under torchrun only
+rank 0 logs; the other ranks get a handle that drops everything.
 """
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
+import re
 import subprocess
 import time
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -21,11 +28,16 @@ PARENT_ENV = "TYP_PARENT_RUN_ID"
 log = logging.getLogger(__name__)
 
 
+#: environment DVC sets for a stage command during `dvc exp run` -> the MLflow tag it becomes
+DVC_EXP_TAGS = {"DVC_EXP_NAME": "dvc.exp_name", "DVC_EXP_BASELINE_REV": "dvc.exp_baseline_rev"}
+
+
 def tracking_uri(cfg: Config, root: Path) -> str:
     uri = os.environ.get("MLFLOW_TRACKING_URI") or cfg.tracking.uri
     prefix = "sqlite:///"
     if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
-        uri = prefix + str((root / uri[len(prefix):]).resolve())
+        base = Path(os.environ.get("DVC_ROOT") or root)
+        uri = prefix + str((base / uri[len(prefix):]).resolve())
     return uri
 
 
@@ -56,6 +68,11 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["S
     """One MLflow run for one stage execution: params of the stage's block, tags, then the body."""
     import mlflow
 
+    from typ.distributed import is_main
+
+    if not is_main():
+        yield NullRun()
+        return
     root = Path(root)
     mlflow.set_tracking_uri(tracking_uri(cfg, root))
     exp_id = _experiment_id(mlflow, cfg.tracking.experiment, root)
@@ -67,6 +84,7 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["S
         "typ.params_hash": hash_obj(as_dict(block))[:16],
         "mlflow.source.git.commit": git_commit(root),
         "dvc.stage": stage,
+        **{tag: os.environ[env] for env, tag in DVC_EXP_TAGS.items() if os.environ.get(env)},
     }
     nested = mlflow.active_run() is not None
     parent = os.environ.get(PARENT_ENV)
@@ -96,7 +114,7 @@ class StageRun:
         from mlflow.entities import Metric
 
         now = int(time.time() * 1000)
-        clean = [Metric(k, float(v), now, step or 0) for k, v in values.items()
+        clean = [Metric(metric_name(k), float(v), now, step or 0) for k, v in values.items()
                  if isinstance(v, (int, float)) and not isinstance(v, bool)]
         if clean:
             self._client.log_batch(self.run_id, metrics=clean, synchronous=True)
@@ -107,6 +125,59 @@ class StageRun:
             self._client.log_artifacts(self.run_id, str(path), artifact_path=subdir)
         elif path.exists():
             self._client.log_artifact(self.run_id, str(path), artifact_path=subdir)
+
+
+    def log_model(self, name: str, module, inputs, *, output: str | None = None) -> str:
+        """Log a trained torch module as an MLflow model with a signature; returns its URI.
+
+        ``inputs``: an example batch, one tensor or ``{argument name: tensor}`` for a module
+        called with keywords; ``output``: the attribute of the module's output that holds the
+        result tensor (e.g. ``"logits"``), when the output is not a tensor itself. The module is
+        run once on ``inputs`` to infer the signature. Load it back with
+        ``mlflow.pyfunc.load_model(uri).predict({name: array, ...})``; the module itself is
+        ``.unwrap_python_model().module``.
+        """
+        import mlflow
+        from mlflow.models import infer_signature
+
+        from typ.mlflow_model import TorchModule, pip_requirements
+
+        wrapper = TorchModule(module, output=output)
+        named = inputs if isinstance(inputs, dict) else {"input": inputs}
+        example = {k: v.detach().cpu().numpy() for k, v in named.items()}
+        signature = infer_signature(example, wrapper.predict(None, example))
+        active = self._mlflow.active_run()
+        resume = active is None or active.info.run_id != self.run_id
+        with (self._mlflow.start_run(run_id=self.run_id, nested=active is not None) if resume
+              else contextlib.nullcontext()), warnings.catch_warnings():
+            # no input example on purpose (a paper-scale x is 20 MB); the signature has the shapes
+            warnings.filterwarnings("ignore", message=".*(input example|type hints).*", category=UserWarning)
+            info = mlflow.pyfunc.log_model(name=name, python_model=wrapper, signature=signature,
+                                           pip_requirements=pip_requirements())
+        return info.model_uri
+
+
+class NullRun:
+    """What a torchrun rank other than 0 logs to: nothing."""
+
+    run_id = ""
+
+    def metrics(self, values: dict[str, float], step: int | None = None) -> None:
+        pass
+
+    def artifact(self, path: str | Path, subdir: str | None = None) -> None:
+        pass
+
+    def log_model(self, name: str, module, inputs, *, output: str | None = None) -> str:
+        return ""
+
+
+def metric_name(name: str) -> str:
+    """``name`` with what MLflow refuses in metric names (``dpmsolver++``'s ``+``) replaced by ``_``."""
+    return _NOT_IN_METRIC_NAMES.sub("_", name)
+
+
+_NOT_IN_METRIC_NAMES = re.compile(r"[^\w\-. :/]")
 
 
 def _short(value) -> str:

@@ -1,0 +1,94 @@
+"""A local Prefect server for ``typ serve``: ``prefect server start`` on loopback, sqlite in
+``PREFECT_HOME``, analytics off; stopped by killing the process group it was started in.
+
+Prefect is not imported here: it reads ``PREFECT_API_URL`` once, when first imported, so the
+caller starts the server, exports its URL, and only then imports the flows.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from typ.errors import TypError
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class LocalServer:
+    """One ``prefect server start`` child process in its own session (process group)."""
+
+    def __init__(self, process: subprocess.Popen, host: str, port: int, log: Path):
+        self.process, self.host, self.port, self.log = process, host, port, log
+
+    @property
+    def api_url(self) -> str:
+        return f"http://{self.host}:{self.port}/api"
+
+    @property
+    def ui_url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    @classmethod
+    def start(cls, home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = True,
+              timeout: float = 120.0, env: dict | None = None) -> "LocalServer":
+        """Start the server with its state (sqlite ``prefect.db``, logs) in ``home``; wait until healthy."""
+        home = Path(home).resolve()
+        home.mkdir(parents=True, exist_ok=True)
+        port = port or free_port(host)
+        with socket.socket() as s:
+            if s.connect_ex((host, port)) == 0:
+                raise TypError("typ serve", "--port", f"a free port on {host} (set PREFECT_API_URL to use the "
+                               "server already there)", port)
+        child_env = {**(env if env is not None else os.environ), "PREFECT_HOME": str(home),
+                     "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
+        child_env.pop("PREFECT_API_URL", None)
+        log = home / "server.log"
+        cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
+               "--analytics-off", "--ui" if ui else "--no-ui"]
+        with open(log, "ab") as out:
+            proc = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True)
+        server = cls(proc, host, port, log)
+        server.wait_healthy(timeout)
+        return server
+
+    def wait_healthy(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"prefect server exited with {self.process.returncode}; see {self.log}:\n"
+                                   + self.log.read_text()[-2000:])
+            try:
+                with urllib.request.urlopen(f"{self.api_url}/health", timeout=2) as r:
+                    if r.status == 200:
+                        return
+            except (urllib.error.URLError, OSError):
+                pass
+            time.sleep(0.5)
+        self.stop()
+        raise RuntimeError(f"prefect server not healthy after {timeout:.0f} s; see {self.log}")
+
+    def stop(self, grace: float = 10.0) -> None:
+        """SIGTERM the server's process group (uvicorn and its services), then SIGKILL what is left."""
+        try:
+            if self.process.poll() is None:
+                os.killpg(self.process.pid, signal.SIGTERM)
+                try:
+                    self.process.wait(grace)
+                except subprocess.TimeoutExpired:
+                    pass
+            os.killpg(self.process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.process.wait(grace)

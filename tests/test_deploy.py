@@ -1,0 +1,182 @@
+"""Prefect deployments against a real local server, and the per-scene retry policy.
+
+The module's server is ``prefect server start`` on a free loopback port with its sqlite state in
+a temporary PREFECT_HOME, started and stopped (by process group) through ``flows.server``.
+``typ serve`` runs as a subprocess against it (PREFECT_API_URL set, so it starts no server of
+its own); the test triggers the on-demand deployment with ``run_deployment``, waits for the run
+and checks the stage's outputs, and waits for the every-minute watched-folder deployment to
+run on its schedule.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from flows.server import LocalServer
+from typ.errors import TypError
+
+PARAMS = {
+    "profile": "tiny",
+    "simulate": {"frames": 2, "azimuth_step_deg": 1.5, "agents_min": 2, "agents_max": 2, "workers": 1,
+                 "scenarios": {"source": {"train": 0, "test": 0}, "target": {"train": 1, "val": 0, "test": 0},
+                               "real_cav": {"train": 0, "test": 0}}},
+    "serve": {"watch_cron": "* * * * *"},
+}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    home = tmp_path_factory.mktemp("prefect-home")
+    env = {**os.environ, "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "5", "PREFECT_LOGGING_LEVEL": "WARNING"}
+    srv = LocalServer.start(home, ui=False, env=env, timeout=180)
+    try:
+        yield srv
+    finally:
+        srv.stop()
+        assert srv.process.poll() is not None
+        with pytest.raises(ProcessLookupError):  # nothing of its process group is left
+            os.killpg(srv.process.pid, 0)
+
+
+@pytest.fixture
+def api(server):
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
+        yield server
+        # send the logs and events this process still holds before the server goes, or
+        # Prefect retries them against a closed port when the interpreter exits
+        from prefect.events.worker import EventsWorker
+        from prefect.logging.handlers import APILogWorker
+
+        APILogWorker.drain_all(timeout=30)
+        EventsWorker.drain_all(timeout=30)
+
+
+def _wait_for(what: str, check, timeout: float, every: float = 1.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = check()
+        if found:
+            return found
+        time.sleep(every)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def test_served_deployment_runs_on_demand_and_on_schedule(api, tmp_path):
+    from prefect import get_client
+    from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
+    from prefect.deployments import run_deployment
+
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(PARAMS))
+    env = {**os.environ, "PREFECT_API_URL": api.api_url, "PREFECT_HOME": str(tmp_path / ".prefect"),
+           "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlruns.db'}", "OMP_NUM_THREADS": "1",
+           "MKL_NUM_THREADS": "1", "PREFECT_LOGGING_LEVEL": "INFO"}
+    log = tmp_path / "serve.log"
+    with open(log, "wb") as out:
+        serve = subprocess.Popen([sys.executable, "-m", "typ", "--root", str(tmp_path), "serve", "--only", "typ-stage",
+                                  "watch-generate", "--poll-seconds", "1"], cwd=tmp_path, env=env, stdout=out,
+                                 stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        with get_client(sync_client=True) as client:
+            def deployment(name):
+                try:
+                    return client.read_deployment_by_name(name)
+                except Exception:
+                    assert serve.poll() is None, log.read_text()[-3000:]
+                    return None
+
+            _wait_for("typ serve to register its deployments", lambda: deployment("typ-stage/on-demand"), 120)
+            watch = _wait_for("the watched-folder deployment", lambda: deployment("watch-generate/scheduled"), 30)
+            assert [s.schedule.cron for s in watch.schedules] == ["* * * * *"]
+            assert watch.parameters == {"params": "params.yaml", "root": str(tmp_path.resolve())}
+
+            run = run_deployment("typ-stage/on-demand", parameters={"stage": "simulate"}, timeout=300, poll_interval=1)
+            assert run.state.is_completed(), f"{run.state}\n{log.read_text()[-4000:]}"
+            pcds = sorted((tmp_path / "data" / "sim" / "target" / "train").rglob("*.pcd"))
+            assert len(pcds) == 2 * 2  # agents x frames
+            assert (tmp_path / "metrics" / "simulate.json").is_file()
+
+            def scheduled_run_done():
+                runs = client.read_flow_runs(deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[watch.id])))
+                return [r for r in runs if r.state and r.state.is_completed()]
+
+            done = _wait_for("a scheduled run of watch-generate", scheduled_run_done, 150, every=2)
+            assert done[0].auto_scheduled
+    finally:
+        try:
+            os.killpg(serve.pid, signal.SIGTERM)
+            serve.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(serve.pid, signal.SIGKILL)
+            serve.wait(20)
+        except ProcessLookupError:
+            pass
+
+
+CALLS: dict[str, int] = {}
+
+
+def _flaky(scene: str) -> str:
+    CALLS[scene] = CALLS.get(scene, 0) + 1
+    if scene == "eio" and CALLS[scene] == 1:
+        raise OSError(errno.EIO, "Input/output error (a flaky disk)")
+    if scene == "bug":
+        raise ValueError("a deterministic bug")
+    if scene == "bad":
+        raise TypError("data/sim/bad", "scenario", "an OPV2V scenario folder")
+    if scene == "gone":
+        raise FileNotFoundError(errno.ENOENT, "No such file", scene)
+    return scene
+
+
+def test_retries_only_transient_io_errors_and_failures_name_the_scene(api):
+    from prefect import flow
+
+    from flows.common import IO_RETRIES, StageFailed, per_scene
+
+    @flow(name="retry-policy")
+    def run(items):
+        return per_scene(_flaky, items, label=str, stage="probe", retries=IO_RETRIES)
+
+    CALLS.clear()
+    assert run(["ok", "eio"]) == ["ok", "eio"]
+    assert CALLS == {"ok": 1, "eio": 2}  # EIO retried once (after the 1 s backoff), then fine
+    for scene, error in (("bug", StageFailed), ("gone", StageFailed), ("bad", TypError)):
+        CALLS.clear()
+        with pytest.raises(error) as info:
+            run([scene])
+        assert CALLS == {scene: 1}, f"{scene} was retried"
+        if error is StageFailed:
+            assert f"probe: scene {scene} failed" in str(info.value)
+        else:
+            assert "data/sim/bad" in str(info.value)
+
+
+def test_watched_folder_finds_new_scenarios_and_points_generate_at_them(tmp_path):
+    from flows.deploy import DERIVED_PARAMS, new_scenarios, watch_params
+    from typ.config import load_config
+
+    watch, out = tmp_path / "incoming", tmp_path / "generated-incoming"
+    for name in ("scene_a", "scene_b"):
+        (watch / "target" / "test" / name / "0").mkdir(parents=True)
+    (watch / "target" / ".tmp-partial").mkdir()
+    (out / "target" / "test" / "scene_a").mkdir(parents=True)  # generated by an earlier run
+    fresh = new_scenarios(watch, out)
+    assert {k: [p.name for p in v] for k, v in fresh.items()} == {("target", "test"): ["scene_b"]}
+    assert new_scenarios(tmp_path / "missing", out) == {}
+
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(PARAMS))
+    derived = watch_params(tmp_path / "params.yaml", watch, out, [("target", "test")])
+    assert derived == str(out / DERIVED_PARAMS)
+    cfg = load_config(derived)  # what generate will load: valid against the current schema
+    assert cfg.generate.input == str(watch) and cfg.generate.out == str(out)
+    assert [(s.dataset, s.split) for s in cfg.generate.sets] == [("target", "test")]
+    assert cfg.simulate.frames == PARAMS["simulate"]["frames"]  # the rest of the project's params kept

@@ -1,0 +1,215 @@
+"""Device, precision and data-parallel training for typ's training stages.
+
+``torchrun --nproc_per_node N -m typ run <stage>`` starts N copies of a training stage. Each
+joins the process group from torchrun's environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``,
+``MASTER_ADDR``/``MASTER_PORT``): gloo on the CPU, nccl on CUDA. Every rank builds the same
+model from the same seed and draws the same global batch from ``batch_rng(seed, step)``;
+each computes its loss on its shard of that batch (:func:`shard`), and gradients are averaged
+across ranks, weighted by shard size, just before every optimizer step. So N ranks take the
+step one process takes on the whole global batch, up to float rounding.
+
+Why on the optimizer step and not by wrapping modules in ``DistributedDataParallel``: DDP
+syncs gradients only through ``forward``, and typ's stages train through other methods
+(``model.loss``, ``encode_pre_quant``, two optimizers in adapt). A step pre-hook on every
+optimizer covers them all without changing the stages.
+
+Only rank 0 writes checkpoints, outputs and MLflow runs (:func:`is_main`). Outside torchrun
+(``WORLD_SIZE`` unset or 1) everything here is a no-op apart from device and autocast.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass, replace
+from typing import Iterator, Sequence
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.optim.optimizer import register_optimizer_step_pre_hook
+
+from typ.errors import TypError
+
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """Where this process trains: device, autocast precision, and its place in the group."""
+
+    device: torch.device
+    precision: str
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+
+_runtime = Runtime(torch.device("cpu"), "fp32")
+# this rank's share of the current global batch times world_size (1.0 for equal shards)
+_shard_weight = 1.0
+
+
+def resolve_device(name: str, *, local_rank: int = 0, where: str = "params.yaml") -> torch.device:
+    """``auto`` | ``cpu`` | ``cuda`` | ``mps`` -> a device this machine has (``cuda:<local rank>``)."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "mps" if _mps() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise TypError(where, "runtime.device", "a device this machine has (no CUDA here: cpu or auto)", name)
+        return torch.device("cuda", local_rank % torch.cuda.device_count())
+    if name == "mps" and not _mps():
+        raise TypError(where, "runtime.device", "a device this machine has (no MPS here: cpu or auto)", name)
+    if name not in ("cpu", "mps"):
+        raise TypError(where, "runtime.device", "one of auto, cpu, cuda, mps", name)
+    return torch.device(name)
+
+
+def _mps() -> bool:
+    return getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available()
+
+
+def setup(device: str = "cpu", precision: str = "fp32", *, where: str = "params.yaml") -> Runtime:
+    """Pick the device and precision and, under torchrun, join the process group (once)."""
+    global _runtime
+    if precision not in PRECISIONS:
+        raise TypError(where, "runtime.precision", f"one of {list(PRECISIONS)}", precision)
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    dev = resolve_device(device, local_rank=local_rank, where=where)
+    if world > 1 and not dist.is_initialized():
+        if dev.type == "cuda":
+            torch.cuda.set_device(dev)
+        # on CUDA: nccl for CUDA tensors, gloo for any that stayed on the CPU
+        dist.init_process_group("cpu:gloo,cuda:nccl" if dev.type == "cuda" else "gloo", rank=rank, world_size=world)
+    _runtime = Runtime(dev, precision, rank, world, local_rank)
+    return _runtime
+
+
+def teardown() -> None:
+    """Leave the process group (end of a torchrun process)."""
+    global _runtime
+    if dist.is_initialized():
+        dist.destroy_process_group()
+    _runtime = replace(_runtime, rank=0, world_size=1, local_rank=0)
+
+
+def current() -> Runtime:
+    return _runtime
+
+
+def device() -> torch.device:
+    return _runtime.device
+
+
+def rank() -> int:
+    return _runtime.rank
+
+
+def world_size() -> int:
+    return _runtime.world_size
+
+
+def is_main() -> bool:
+    """True on the one process that writes files and MLflow runs (rank 0, or no torchrun)."""
+    return _runtime.rank == 0
+
+
+def autocast() -> contextlib.AbstractContextManager:
+    """Autocast to the params' precision on the runtime device; a no-op for fp32."""
+    dtype = PRECISIONS[_runtime.precision]
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=_runtime.device.type, dtype=dtype)
+
+
+def shard(index: Sequence[int] | np.ndarray | torch.Tensor):
+    """This rank's part of a global batch ``index`` (every world_size-th item from its rank).
+
+    Batches whose size is not a multiple of the world size give uneven shards; gradients and
+    logged values are then weighted by shard size, so the step still equals one process's.
+    """
+    global _shard_weight
+    n, world = len(index), _runtime.world_size
+    if world == 1:
+        return index
+    if n < world:
+        raise TypError("params.yaml", "batch_size", f"at least the number of processes ({world})", n)
+    local = index[_runtime.rank::world]
+    _shard_weight = len(local) * world / n
+    return local
+
+
+def average_gradients(parameters) -> None:
+    """Replace each gradient by the shard-weighted mean over ranks, in one all-reduce.
+
+    A parameter without a gradient on some rank counts as zero there; one without a gradient
+    on every rank keeps ``grad = None`` (so Adam leaves it alone, as in one process).
+    """
+    params = [p for p in parameters if p.requires_grad]
+    if _runtime.world_size == 1 or not params:
+        return
+    dev = params[0].device
+    flat = torch.cat([(p.grad.detach().reshape(-1).float() * _shard_weight if p.grad is not None
+                       else torch.zeros(p.numel(), device=dev)) for p in params]
+                     + [torch.tensor([float(p.grad is not None) for p in params], device=dev)])
+    dist.all_reduce(flat)
+    flat /= _runtime.world_size
+    had_grad = flat[-len(params):] > 0
+    offset = 0
+    for p, keep in zip(params, had_grad.tolist()):
+        n = p.numel()
+        if keep:
+            mean = flat[offset:offset + n].view_as(p).to(p.dtype)
+            if p.grad is None:
+                p.grad = mean.clone()
+            else:
+                p.grad.copy_(mean)
+        offset += n
+
+
+def all_reduce_mean(values: dict[str, float]) -> dict[str, float]:
+    """Shard-weighted mean over ranks of one step's logged scalars (same keys on every rank)."""
+    if _runtime.world_size == 1 or not values:
+        return values
+    keys = sorted(values)
+    t = torch.tensor([float(values[k]) * _shard_weight for k in keys], dtype=torch.float64,
+                     device=_collective_device())
+    dist.all_reduce(t)
+    t /= _runtime.world_size
+    return dict(zip(keys, t.tolist()))
+
+
+def broadcast_object(obj):
+    """Rank 0's ``obj`` on every rank (pickled): one starting state for all."""
+    if _runtime.world_size == 1:
+        return obj
+    box = [obj if is_main() else None]
+    dist.broadcast_object_list(box, src=0, device=_collective_device())
+    return box[0]
+
+
+def barrier() -> None:
+    if _runtime.world_size > 1:
+        dist.barrier()
+
+
+def _collective_device() -> torch.device:
+    return _runtime.device if _runtime.device.type == "cuda" else torch.device("cpu")
+
+
+@contextlib.contextmanager
+def synchronized_optimizers() -> Iterator[None]:
+    """While open, every optimizer's ``step()`` first averages its parameters' gradients over ranks."""
+    if _runtime.world_size == 1:
+        yield
+        return
+
+    def hook(optimizer, args, kwargs):
+        average_gradients(p for group in optimizer.param_groups for p in group["params"])
+
+    handle = register_optimizer_step_pre_hook(hook)
+    try:
+        yield
+    finally:
+        handle.remove()
