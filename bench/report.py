@@ -1,0 +1,104 @@
+"""``reports/bench.md``: every ``reports/bench_*.md`` on one page, under a header naming the machine.
+
+    python bench/report.py [--out reports]
+
+Each bench writes its own page (method, notes, tables, plot). This page keeps, per bench in
+file-name order, its title (linked to the page, and its plot when there is one), its tables
+with the heading just above each, and its one-line verdicts (``- **...``); the method and
+notes stay on the bench's own page. The header names the machine this script runs on:
+``make bench`` runs it right after the benches, in the same environment.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable from a checkout
+
+from typ.io import write_text  # noqa: E402
+
+
+def cpu_model() -> str:
+    """The CPU's marketing name from /proc/cpuinfo (Linux), else what platform knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine() -> dict:
+    """Cores, CPU model, torch and its intra-op threads: what every bench's numbers depend on."""
+    import torch
+
+    return {"cores": os.cpu_count(), "cpu": cpu_model(), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "python": platform.python_version()}
+
+
+def machine_line(info: dict) -> str:
+    return (f"{info['cores']} cores ({info['cpu']}), Python {info['python']}, torch {info['torch']} with "
+            f"{info['torch_threads']} intra-op thread(s)")
+
+
+def digest(markdown: str) -> str:
+    """A bench page's tables, each under the last heading before it, and its ``- **`` verdict lines.
+
+    Headings move one level down (the page's title becomes the aggregate's section); headings
+    with nothing kept under them are dropped.
+    """
+    out: list[str] = []
+    heading, last = None, None          # last: the kind of the previous line, "table" / "bullet" / None
+    for line in markdown.splitlines():
+        if line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            if level > 1 and line[level:level + 1] == " ":  # the page title (level 1) is the caller's
+                heading, last = "#" + line, None
+            continue
+        kind = "table" if line.startswith("|") else "bullet" if line.startswith("- **") else None
+        if kind is not None:
+            if heading is not None:
+                out += ["", heading, ""] if out else [heading, ""]
+                heading = None
+            elif kind != last and out:
+                out.append("")
+            out.append(line)
+        last = kind
+    return "\n".join(out)
+
+
+def aggregate(folder: Path, info: dict) -> str:
+    """The text of ``<folder>/bench.md`` from the bench pages found in ``folder``."""
+    lines = ["# typ benchmarks", "",
+             f"Machine: {machine_line(info)}. Every figure below is a ratio or a curve measured side by side "
+             "in one run of its bench; absolute times are this machine's. `make bench` regenerates this page.", ""]
+    pages = sorted(p for p in folder.glob("bench_*.md"))
+    if not pages:
+        lines.append("No bench pages yet: run `make bench`.")
+    for page in pages:
+        text = page.read_text(encoding="utf-8")
+        title = next((ln[2:].strip() for ln in text.splitlines() if ln.startswith("# ")), page.stem)
+        plot = page.with_suffix(".png")
+        links = f"[page]({page.name})" + (f", [plot]({plot.name})" if plot.exists() else "")
+        lines += [f"## {title}", "", f"{page.stem} — {links}", ""]
+        body = digest(text)
+        lines += [body, ""] if body else ["(no tables)", ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="reports", help="folder holding the bench_*.md pages; bench.md goes there")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    write_text(out / "bench.md", aggregate(out, machine()))
+    print(out / "bench.md")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
