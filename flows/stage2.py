@@ -13,8 +13,7 @@ from tasks import stage1, stage2 as stage
 from tasks.pairs import iter_pairs, stack
 from tasks.vqvae import load_model as load_vqvae
 from typ.config import load_config
-from typ.errors import TypError
-from typ.store import list_scenes, stored_grid
+from typ.store import store_grid
 from typ.tracking import stage_run
 
 STAGE = "stage2"
@@ -26,10 +25,7 @@ def stage2_flow(params: str = "params.yaml", root: str = ".") -> dict:
     cfg = load_config(root_path / params)
     block = cfg.stage2
     out, sim = root_path / block.out, root_path / block.sim
-    stored = list_scenes(root_path / block.voxels)
-    if not stored:
-        raise TypError(root_path / block.voxels, "stage2.voxels", "a voxel store (run voxelize first)", "empty")
-    grid = stored_grid(stored[0].path)
+    grid = store_grid(root_path / block.voxels, "stage2.voxels")
     target_x, y_vq = load_vqvae(root_path / block.vqvae / "x"), load_vqvae(root_path / block.vqvae / "y")
     source_x = load_vqvae(root_path / block.adapt / "source_vq")
     ldm, saved = stage1.load_model(root_path / block.stage1)

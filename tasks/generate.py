@@ -25,14 +25,19 @@ import torch
 from models.postprocess import postprocess
 from tasks import stage1
 from tasks.stage2 import adapter_features
-from typ.config import GenerateConfig, Stage1Config, as_dict
+from typ.config import GenerateConfig, GenerateSet, Stage1Config, as_dict
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene
-from typ.geometry import invert, pose_to_matrix, transform_boxes
+from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
 from typ.io import atomic_path, hash_files, hash_obj, read_json_or_none, write_json
 from typ.scene import AgentView, Scene
 from typ.voxel import Grid, box_map, points_to_reference, voxel_centers, voxelize
 
 MANIFEST = "_typ.json"
+#: why a reference view or a scenario was not generated, counted per stage run
+SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_without_candidate_vehicle",
+                "roadside_unit_without_ground", "reference_view_empty")
+#: labels of vehicles a reference sensor can ride on: the simulator's, KITTI's, Waymo's, nuScenes'
+VEHICLE_LABELS = frozenset({"car", "van", "truck", "vehicle", "bus", "trailer", "construction_vehicle"})
 #: the ego's own car, which the ego's labels never contain but a reference sees
 EGO_CAR_LWH = (4.5, 1.85, 1.5)
 
@@ -62,13 +67,18 @@ class Reference:
 
 
 def candidate_ids(ego: AgentView, cfg: GenerateConfig, skipped: dict[str, int]) -> set[int]:
-    """Ids of the ego's labelled vehicles inside the distance band [min_distance, max_distance]."""
+    """Ids of the ego's labelled vehicles inside the distance band [min_distance, max_distance].
+
+    Only vehicles carry a reference sensor: pedestrians, cyclists and signs (KITTI, Waymo,
+    nuScenes labels) are never candidates and are not counted as skipped.
+    """
+    vehicle = np.array([str(label).lower() in VEHICLE_LABELS for label in ego.box_labels], dtype=bool)
     dist = np.hypot(ego.boxes[:, 0], ego.boxes[:, 1])
-    near = dist < cfg.min_distance
-    far = dist > cfg.max_distance
+    near = vehicle & (dist < cfg.min_distance)
+    far = vehicle & (dist > cfg.max_distance)
     skipped["reference_too_close"] += int(near.sum())
     skipped["reference_out_of_range"] += int(far.sum())
-    return set(ego.box_ids[~near & ~far].tolist())
+    return set(ego.box_ids[vehicle & ~near & ~far].tolist())
 
 
 def sample_references(egos: list[AgentView], cfg: GenerateConfig, rng: np.random.Generator,
@@ -89,86 +99,174 @@ def sample_references(egos: list[AgentView], cfg: GenerateConfig, rng: np.random
 
 
 def build_reference(ego: AgentView, index: int, grid: Grid) -> Reference:
+    """The reference on labelled vehicle ``ego.boxes[index]``: a sensor on its roof at the ego's
+    mounting height, facing its heading; its id is the ego's id followed by the vehicle's."""
     box = ego.boxes[index]
-    # the reference sensor sits at the ego's mounting height (same sensor), on the vehicle, facing its heading
     in_ego = pose_to_matrix([box[0], box[1], 0.0, 0.0, np.degrees(box[6]), 0.0])
-    ref_pose = ego.pose @ in_ego
-    keep = np.arange(len(ego.boxes)) != index
-    ego_car = np.array([[0.0, 0.0, box[2], *EGO_CAR_LWH, 0.0]])
-    boxes = transform_boxes(invert(in_ego), np.concatenate([ego.boxes[keep], ego_car]))
+    # OpenCOOD takes the agent folder that sorts first as the ego: prefixing the vehicle id
+    # with the ego's id keeps the real ego first and stays unique per vehicle
+    return reference_at(ego, ego.pose @ in_ego, f"{ego.agent_id}{int(ego.box_ids[index])}",
+                        int(ego.box_ids[index]), grid)
+
+
+def reference_at(ego: AgentView, ref_pose: np.ndarray, agent_id: str, exclude_id: int | None,
+                 grid: Grid) -> Reference:
+    """x_e' and y_r at sensor pose ``ref_pose`` (4x4 float64, world), from the ego's view only.
+
+    y_r holds the ego's labelled boxes (less ``exclude_id``, the vehicle carrying the
+    reference sensor) plus the ego's own car, which its labels never contain.
+    """
+    in_ego = invert(ego.pose) @ ref_pose
+    keep = ego.box_ids != exclude_id if exclude_id is not None else np.ones(len(ego.boxes), bool)
+    # the ego car's centre height in its own sensor frame: that of the labelled cars, which
+    # stand on the same road (a reference height when there are none)
+    car_z = float(np.median(ego.boxes[:, 2])) if len(ego.boxes) else -1.0
+    ego_car = np.array([[0.0, 0.0, car_z, *EGO_CAR_LWH, 0.0]])
+    boxes = transform_boxes(invert(in_ego), np.concatenate([ego.boxes[keep].reshape(-1, 7), ego_car]))
     labels = tuple(np.asarray(ego.box_labels, dtype=object)[keep]) + ("car",)
     ego_numeric = int(ego.agent_id) if ego.agent_id.lstrip("-").isdigit() else -1
     ids = np.concatenate([ego.box_ids[keep], [ego_numeric]])
     moved = points_to_reference(ego.points, ego.pose, ref_pose)
-    # OpenCOOD takes the agent folder that sorts first as the ego: prefixing the vehicle id
-    # with the ego's id keeps the real ego first and stays unique per vehicle
-    return Reference(f"{ego.agent_id}{int(ego.box_ids[index])}", ref_pose, boxes, labels, ids,
+    return Reference(agent_id, np.asarray(ref_pose, dtype=np.float64), boxes, labels, ids,
                      voxelize(moved, grid).transpose(2, 0, 1), box_map(boxes, grid).transpose(2, 0, 1))
 
 
+def roadside_poses(ego: AgentView, cfg: GenerateConfig, rng: np.random.Generator,
+                   skipped: dict[str, int]) -> list[np.ndarray]:
+    """``cfg.roadside_units`` sensor poses (4x4 float64, world) fixed for the whole sequence.
+
+    Each stands on ground the ego observed in its first frame — a point within 0.3 m of the
+    ground level (the 5th height percentile of the ego's cloud), inside the distance band and
+    outside every labelled box — at the ego's mounting height, facing the ego. A roadside
+    unit needs no labelled vehicle, so frames without one still get a reference view.
+    """
+    xyz = ego.points[:, :3].astype(np.float64)
+    if len(xyz) == 0:
+        skipped["roadside_unit_without_ground"] += cfg.roadside_units
+        return []
+    ground = np.percentile(xyz[:, 2], 5)
+    dist = np.hypot(xyz[:, 0], xyz[:, 1])
+    ok = (np.abs(xyz[:, 2] - ground) < 0.3) & (dist >= cfg.min_distance) & (dist <= cfg.max_distance)
+    if len(ego.boxes):
+        ok &= ~points_in_boxes(xyz, ego.boxes).any(axis=1)
+    spots = xyz[ok]
+    if len(spots) == 0:
+        skipped["roadside_unit_without_ground"] += cfg.roadside_units
+        return []
+    picks = spots[rng.choice(len(spots), size=min(cfg.roadside_units, len(spots)), replace=False)]
+    return [ego.pose @ pose_to_matrix([x, y, 0.0, 0.0, np.degrees(np.arctan2(-y, -x)), 0.0]) for x, y, _ in picks]
+
+
+def cav_references(scene: Scene, grid: Grid) -> list[Reference]:
+    """References at the scenario's own cooperating agents' true poses (their clouds unused).
+
+    Every CAV gets one, however far (within communication range, as the dataset has it): the
+    result must be a drop-in for the real split, with the same agents, for the fusion
+    benchmark's generated-vs-oracle comparison; the distance band applies to sampled poses only.
+    """
+    ego = scene.ego
+    refs = []
+    for agent_id, view in scene.agents.items():
+        if agent_id != ego.agent_id:
+            exclude = int(agent_id) if agent_id.lstrip("-").isdigit() else None
+            refs.append(reference_at(ego, view.pose, agent_id, exclude, grid))
+    return refs
+
+
 @torch.no_grad()
-def generate_points(refs: list[Reference], models: Models, grid: Grid, seed: int) -> list[np.ndarray]:
-    """Batched sampling for all references of a scenario: (N, 4) float32 clouds, intensity 0."""
-    x_e = torch.from_numpy(np.stack([r.x_e for r in refs]).astype(np.float32))
-    y_r = torch.from_numpy(np.stack([r.y_r for r in refs]).astype(np.float32))
-    features = adapter_features(models.adapter, models.ldm, models.x_vq.encode_pre_quant(x_e))
+def generate_occupancy(x_e: np.ndarray, y_r: np.ndarray, models: Models, seed: int) -> np.ndarray:
+    """Batched sampling of P(x_r | x_e', y_r): (N, C, H, W) bool, post-processed (TYP §4.1).
+
+    x_e: (N, C, H, W) x_e' grids, y_r: (N, 1, H, W) box maps. ``models.adapter`` None samples
+    stage 1 alone, P(x_r | y_r).
+    """
+    x_e = torch.from_numpy(np.asarray(x_e, dtype=np.float32))
+    y_r = torch.from_numpy(np.asarray(y_r, dtype=np.float32))
+    features = (None if models.adapter is None else
+                adapter_features(models.adapter, models.ldm, models.x_vq.encode_pre_quant(x_e)))
     logits = stage1.sample_logits(models.ldm, models.x_vq, models.y_vq.encode_pre_quant(y_r), cfg=models.sampling,
                                   generator=torch.Generator().manual_seed(seed), adapter_features=features)
     t = models.thresholds
-    occupancy = postprocess(logits, low=t["low"], high=t["high"], noise_std=t["noise_std"],
-                            generator=torch.Generator().manual_seed(seed)).numpy()
-    clouds = []
-    for occ in occupancy:
-        xyz = voxel_centers(occ.transpose(1, 2, 0), grid)
-        clouds.append(np.concatenate([xyz, np.zeros((len(xyz), 1))], axis=1).astype(np.float32))
-    return clouds
+    return postprocess(logits, low=t["low"], high=t["high"], noise_std=t["noise_std"],
+                       generator=torch.Generator().manual_seed(seed)).numpy()
 
 
-def scenario_key(folder: Path, cfg: GenerateConfig, models: Models, grid: Grid) -> str:
+def occupancy_to_points(occupancy: np.ndarray, grid: Grid) -> np.ndarray:
+    """(C, H, W) bool -> (N, 4) float32 cloud of occupied voxel centres, intensity 0 (TYP §4.1)."""
+    xyz = voxel_centers(occupancy.transpose(1, 2, 0), grid)
+    return np.concatenate([xyz, np.zeros((len(xyz), 1))], axis=1).astype(np.float32)
+
+
+def generate_points(refs: list[Reference], models: Models, grid: Grid, seed: int) -> list[np.ndarray]:
+    """Batched sampling for all references of a scenario: (N, 4) float32 clouds, intensity 0."""
+    occupancy = generate_occupancy(np.stack([r.x_e for r in refs]), np.stack([r.y_r for r in refs]), models, seed)
+    return [occupancy_to_points(occ, grid) for occ in occupancy]
+
+
+def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, models: Models, grid: Grid) -> str:
     files = sorted(p for p in folder.rglob("*") if p.is_file() and not p.name.startswith(("_", ".")))
-    return hash_obj({"inputs": hash_files(files), "cfg": as_dict(cfg), "models": models.digest,
-                     "grid": grid.to_dict()})
+    if gset.references == "vehicles":
+        # only the ego's files are read; a change to another agent's must not regenerate
+        ego = list_agents(folder)[0]
+        files = [p for p in files if p.parent.name == ego]
+    return hash_obj({"inputs": hash_files(files), "set": as_dict(gset),
+                     "cfg": {k: v for k, v in as_dict(cfg).items() if k not in ("sets", "workers")},
+                     "models": models.digest, "grid": grid.to_dict()})
 
 
-def run_scenario(folder: Path, *, cfg: GenerateConfig, models: Models, grid: Grid, out: Path) -> dict:
+def new_skip_counts() -> dict[str, int]:
+    return {k: 0 for k in SKIP_REASONS}
+
+
+def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, models: Models, grid: Grid,
+                 out: Path) -> dict:
     """Generate and write every reference of one scenario; skip it when its key is unchanged."""
-    target = out / cfg.dataset / cfg.split / folder.name
-    key = scenario_key(folder, cfg, models, grid)
-    base = {"scenario": folder.name}
+    gset, folder = item
+    target = out / gset.dataset / gset.split / folder.name
+    key = scenario_key(folder, gset, cfg, models, grid)
+    base = {"scenario": f"{gset.dataset}/{gset.split}/{folder.name}", "set": f"{gset.dataset}/{gset.split}"}
     manifest = read_json_or_none(target / MANIFEST)
     if manifest is not None and manifest.get("key") == key:
         return {**base, "skipped": "unchanged", **manifest["counts"]}
     t0 = time.perf_counter()
-    skipped = {"reference_too_close": 0, "reference_out_of_range": 0, "scenario_without_candidate_vehicle": 0,
-               "reference_view_empty": 0}
-    ego_id = list_agents(folder)[0]
-    scenes = [read_scene(folder, ts, agents=[ego_id], dataset=cfg.dataset, split=cfg.split)
+    skipped = new_skip_counts()
+    agents = list_agents(folder)
+    # vehicles: the ego's cloud and labels only; cavs: the cooperating agents' poses too
+    read_agents = agents[:1] if gset.references == "vehicles" else agents
+    scenes = [read_scene(folder, ts, agents=read_agents, dataset=gset.dataset, split=gset.split)
               for ts in list_timestamps(folder)]
-    rng = np.random.default_rng([cfg.seed, int(hash_obj(folder.name)[:8], 16)])
-    chosen = sample_references([s.ego for s in scenes], cfg, rng, skipped)
     frames: list[tuple[Scene, list[Reference]]] = []
-    for scene in scenes:
-        index = {int(i): n for n, i in enumerate(scene.ego.box_ids)}
-        refs = [build_reference(scene.ego, index[vid], grid) for vid in chosen]
+    if gset.references == "vehicles":
+        rng = np.random.default_rng([cfg.seed, int(hash_obj(folder.name)[:8], 16)])
+        chosen = sample_references([s.ego for s in scenes], cfg, rng, skipped)
+        rsu_poses = roadside_poses(scenes[0].ego, cfg, rng, skipped) if cfg.roadside_units else []
+        for scene in scenes:
+            index = {int(i): n for n, i in enumerate(scene.ego.box_ids)}
+            refs = [build_reference(scene.ego, index[vid], grid) for vid in chosen]
+            # OpenCOOD's convention: roadside units have negative ids and sort after the vehicles
+            refs += [reference_at(scene.ego, pose, f"-{k + 1}", None, grid) for k, pose in enumerate(rsu_poses)]
+            frames.append((scene, refs))
+    else:
+        frames = [(scene, cav_references(scene, grid)) for scene in scenes]
+    for _, refs in frames:
         # an empty view is still written (every agent has a view at every timestamp); counted
         skipped["reference_view_empty"] += sum(not r.x_e.any() and not r.y_r.any() for r in refs)
-        frames.append((scene, refs))
     all_refs = [r for _, refs in frames for r in refs]
     clouds = iter(generate_points(all_refs, models, grid, cfg.seed) if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
     with atomic_path(target) as tmp:
         tmp.mkdir(parents=True)
         for scene, refs in frames:
-            agents = dict(scene.agents)
+            views = {scene.ego.agent_id: scene.ego}  # the real ego; cavs: the real CAVs are replaced
             for ref in refs:
                 points = next(clouds)
                 counts["generated_points"] += len(points)
-                agents[ref.agent_id] = AgentView(ref.agent_id, points, ref.pose, ref.boxes, ref.labels, ref.ids,
-                                                 where=f"generated:{folder.name}/{ref.agent_id}/{scene.timestamp}")
+                views[ref.agent_id] = AgentView(ref.agent_id, points, ref.pose, ref.boxes, ref.labels, ref.ids,
+                                                where=f"generated:{folder.name}/{ref.agent_id}/{scene.timestamp}")
             # write_scene writes into a folder named like the scenario: name it after tmp
-            write_scene(dataclasses.replace(scene, scenario=tmp.name, agents=agents), tmp)
-        write_json(tmp / MANIFEST, {"key": key, "counts": counts, "generated_agents": sorted(
-            {r.agent_id for _, refs in frames for r in refs})})
+            write_scene(dataclasses.replace(scene, scenario=tmp.name, agents=views), tmp)
+        write_json(tmp / MANIFEST, {"key": key, "counts": counts, "references": gset.references,
+                                    "generated_agents": sorted({r.agent_id for _, refs in frames for r in refs})})
     return {**base, "skipped": None, "seconds": time.perf_counter() - t0, **counts}
 
 
@@ -176,9 +274,11 @@ def summarize(results: list[dict]) -> dict:
     done = [r for r in results if r["skipped"] is None]
     metrics = {"scenarios": len(results), "generated": len(done),
                "skipped_unchanged": sum(r["skipped"] == "unchanged" for r in results)}
-    for k in ("frames", "references", "generated_points", "reference_too_close", "reference_out_of_range",
-              "scenario_without_candidate_vehicle", "reference_view_empty"):
+    for k in ("frames", "references", "generated_points", *SKIP_REASONS):
         metrics[k] = sum(r.get(k, 0) for r in results)
+    for name in sorted({r["set"] for r in results}):
+        mine = [r for r in results if r["set"] == name]
+        metrics[name.replace("/", "_")] = {"scenarios": len(mine), "references": sum(r.get("references", 0) for r in mine)}
     seconds = sum(r.get("seconds", 0.0) for r in done)
     refs_done = sum(r["references"] for r in done)
     metrics["seconds_generating"] = round(seconds, 3)

@@ -27,6 +27,7 @@ class Pair:
     x_r: np.ndarray       # (C, H, W) bool, reference frame
     y_r: np.ndarray       # (1, H, W) bool, reference frame
     x_e: np.ndarray       # (C, H, W) bool: the ego's cloud in the reference frame (x_e')
+    ego_points: np.ndarray  # (N, >=3) the ego's cloud in the reference frame, before voxelization
 
 
 def iter_pairs(split_root: Path, grid: Grid, *, ego_only: bool = False) -> Iterator[Pair]:
@@ -47,7 +48,7 @@ def iter_pairs(split_root: Path, grid: Grid, *, ego_only: bool = False) -> Itera
                     if r == e:
                         continue
                     moved = points_to_reference(scene.agents[e].points, scene.agents[e].pose, scene.agents[r].pose)
-                    yield Pair(folder.name, ts, e, r, grids[r], boxes[r], voxelize(moved, grid).transpose(2, 0, 1))
+                    yield Pair(folder.name, ts, e, r, grids[r], boxes[r], voxelize(moved, grid).transpose(2, 0, 1), moved)
 
 
 def stack(pairs: list[Pair]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -21,7 +21,8 @@ from models.ldm import LatentDiffusion
 from models.schedules import alphas_cumprod, betas
 from models.vqvae import BEVVQVAE
 from tasks.stage1 import noised_batch
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
+from tasks.training import (batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything,
+                            steps_for)
 from typ.config import Stage2Config, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj
@@ -51,19 +52,35 @@ def train(cfg: Stage2Config, ldm: LatentDiffusion, schedule: str, train_timestep
     """Eq. 7 with the UNet frozen; returns the trained adapter."""
     if len(x_r) == 0:
         raise TypError(out, "stage2 training pairs", "at least one (ego, reference) pair in the source split", 0)
-    seed_everything(cfg.seed)
+    seed_everything(cfg.seed)  # before the adapter's initial weights are drawn
+    return fit_adapter(build_adapter(cfg, ldm), ldm, schedule, train_timesteps, x_r, y_r, x_e, name="stage2",
+                       seed=cfg.seed, lr=cfg.lr, epochs=cfg.epochs, batch_size=cfg.batch_size,
+                       checkpoint_every=cfg.checkpoint_every, key_extra=as_dict(cfg), out=out, log_fn=log_fn)
+
+
+def fit_adapter(adapter: T2IAdapter, ldm: LatentDiffusion, schedule: str, train_timesteps: int, x_r: torch.Tensor,
+                y_r: torch.Tensor, x_e: torch.Tensor, *, name: str, seed: int, lr: float, epochs: int,
+                batch_size: int, checkpoint_every: int, key_extra: dict, out: Path,
+                log_fn: Callable[[dict, int], None]) -> T2IAdapter:
+    """Minimise Eq. 7 over ``adapter`` alone on latents (x_r^f, y_r^f, x_e'^f), the UNet frozen.
+
+    Checkpoints go to ``<out>/checkpoints/<key>``, the key covering the data, the frozen UNet,
+    the adapter's starting weights and ``key_extra`` (the config), so a resumed run continues
+    exactly the run that was interrupted.
+    """
+    seed_everything(seed)
     ldm.eval().requires_grad_(False)
-    adapter = build_adapter(cfg, ldm)
     z0, c, ce = ldm.normalize(x_r), ldm.normalize_cond(y_r), ldm.normalize(x_e)
     abar = torch.from_numpy(alphas_cumprod(betas(schedule, train_timesteps))).float()
-    opt = torch.optim.AdamW(adapter.parameters(), lr=cfg.lr)
-    total = steps_for(cfg.epochs, len(z0), cfg.batch_size)
-    key = hash_obj({"cfg": as_dict(cfg), "data": float(x_r.double().sum() + x_e.double().sum()), "n": len(x_r),
-                    "ldm": float(sum(p.double().sum() for p in ldm.parameters()))})[:16]
+    opt = torch.optim.AdamW(adapter.parameters(), lr=lr)
+    total = steps_for(epochs, len(z0), batch_size)
+    key = hash_obj({"cfg": key_extra, "data": float(x_r.double().sum() + x_e.double().sum() + y_r.double().sum()),
+                    "n": len(x_r), "ldm": float(sum(p.double().sum() for p in ldm.parameters())),
+                    "init": float(sum(p.double().sum() for p in adapter.parameters()))})[:16]
     ckpt_dir = run_checkpoint_dir(out / "checkpoints", key)
 
     def step_fn(step: int) -> dict[str, float]:
-        index, t, eps, z_t = noised_batch(batch_rng(cfg.seed, step), z0, abar, cfg.batch_size)
+        index, t, eps, z_t = noised_batch(batch_rng(seed, step), z0, abar, batch_size)
         adapter.train()
         loss = F.mse_loss(ldm(z_t, t, c[index], list(adapter(ce[index]))), eps)
         opt.zero_grad(set_to_none=True)
@@ -72,11 +89,11 @@ def train(cfg: Stage2Config, ldm: LatentDiffusion, schedule: str, train_timestep
         opt.step()
         return {"loss": float(loss.detach()), "grad_norm": norm}
 
-    run_loop(name="stage2", total_steps=total, step_fn=step_fn,
+    run_loop(name=name, total_steps=total, step_fn=step_fn,
              get_state=lambda: {"adapter": adapter.state_dict(), "opt": opt.state_dict()},
              set_state=lambda s: (adapter.load_state_dict(s["adapter"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
-             log_fn=lambda values, step: log_fn({f"stage2.{k}": v for k, v in values.items()}, step))
+             checkpoint_dir=ckpt_dir, checkpoint_every=checkpoint_every,
+             log_fn=lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step))
     return adapter.eval()
 
 
@@ -87,5 +104,19 @@ def adapter_features(adapter: T2IAdapter, ldm: LatentDiffusion, x_e_latents: tor
 
 
 def save(adapter: T2IAdapter, cfg: Stage2Config, folder: Path) -> None:
-    save_torch(folder / "adapter.pt", {"config": {"adapter_res_blocks": cfg.adapter_res_blocks},
+    save_adapter(adapter, cfg.adapter_res_blocks, folder)
+
+
+def save_adapter(adapter: T2IAdapter, res_blocks: int, folder: Path) -> None:
+    save_torch(folder / "adapter.pt", {"config": {"adapter_res_blocks": res_blocks},
                                        "state_dict": adapter.state_dict()})
+
+
+def load_adapter(path: Path, ldm: LatentDiffusion) -> T2IAdapter:
+    """An adapter saved by :func:`save_adapter`, shaped for ``ldm``'s UNet."""
+    saved = load_torch(path, "stage-2 adapter (run the stage2 or selftrain stage)")
+    adapter = T2IAdapter(in_channels=ldm.config["latent_channels"], channels=list(ldm.config["block_out_channels"]),
+                         num_res_blocks=saved["config"]["adapter_res_blocks"], downscale_factor=1,
+                         adapter_type="full_adapter")
+    adapter.load_state_dict(saved["state_dict"])
+    return adapter.eval()

@@ -32,9 +32,17 @@ def write_summary(root: Path) -> Path:
         lines += ["| metric | value |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in _rows(json.loads(path.read_text()))]
         lines.append("")
+    tables = sorted(p for p in (root / "reports").glob("*.md")
+                    if not p.name.startswith(("bench", "summary")) and p.parent.name == "reports")
+    if tables:
+        lines += ["## Result tables", ""]
+        lines += [f"- [{p.stem}]({p.name})" for p in tables]
+        lines.append("")
     benches = sorted((root / "reports").glob("bench_*.md"))
     if benches:
         lines += ["## Benchmarks", ""]
+        if (root / "reports" / "bench.md").exists():
+            lines.append("- [all benchmarks on one page, with the machine](bench.md) (`make bench`)")
         lines += [f"- [{p.stem}]({p.name})" for p in benches]
         lines.append("")
     out = root / "reports" / "summary.md"

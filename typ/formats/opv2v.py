@@ -39,8 +39,12 @@ META_KEYS: tuple[str, ...] = ("ego_speed", "true_ego_pos", "sensor")
 DEFAULT_OBJ_TYPE = "car"
 
 
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e-3`` (no dot) as a float, as OpenCOOD's ``load_yaml`` does."""
+class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """SafeLoader that also reads ``1e-3`` (no dot) as a float, as OpenCOOD's ``load_yaml`` does.
+
+    The libyaml-backed loader when PyYAML has it: the resolvers are the same Python ones, and
+    parsing is about 7x faster (the fusion stage reads a few hundred of these files).
+    """
 
 
 _Loader.add_implicit_resolver(

@@ -1,0 +1,134 @@
+"""Box edits for `typ edit`, and single-agent frames from real datasets written for `generate`."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tasks.edit import BoxEdit, _in_cells, edit_boxes, footprint_mask
+from tasks.generate import VEHICLE_LABELS, candidate_ids, new_skip_counts
+from tasks.ingest import read_frames, to_sensor_frame, write_single_agent
+from typ.config import config_from_dict
+from typ.errors import TypError
+from typ.formats.opv2v import list_agents, list_timestamps, read_scene
+from typ.geometry import pose_to_matrix
+from typ.scene import AgentView, Scene
+from typ.voxel import Grid
+
+GRID = Grid((-51.2, 51.2), (-51.2, 51.2), (-3.0, 1.0), (128, 128, 8))
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def _view():
+    boxes = np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0],
+                      [-15.0, 5.0, -1.2, 4.5, 1.9, 1.5, np.pi / 2],
+                      [20.0, -8.0, -0.9, 0.6, 0.6, 1.7, 0.0]])
+    pts = np.array([[10.0, 0.0, -1.0, 0.3], [10.5, 0.5, -0.5, 0.3], [-30.0, 0.0, -2.0, 0.1]], dtype=np.float32)
+    return AgentView("7", pts, pose_to_matrix([5.0, 5.0, 2.0, 0.0, 10.0, 0.0]), boxes,
+                     ("car", "truck", "pedestrian"), np.array([3, 4, 9]))
+
+
+def test_edit_boxes_remove_move_add():
+    view = _view()
+    edited, old, new = edit_boxes(view, BoxEdit(remove=(3,), move={4: (2.0, -1.0, np.pi)}, add=((0.0, 20.0, 0.5),)))
+    assert list(edited.box_ids) == [4, 9, 10] and edited.box_labels == ("truck", "pedestrian", "car")
+    assert np.allclose(edited.boxes[0, :2], [-13.0, 4.0]) and np.isclose(edited.boxes[0, 6], -np.pi / 2)
+    added = edited.boxes[2]
+    assert np.allclose(added[[0, 1, 6]], [0.0, 20.0, 0.5]) and np.allclose(added[3:6], [4.5, 1.85, 1.5])
+    assert np.isclose(added[2], np.median(view.boxes[:, 2]))  # stands on the same road as the labelled boxes
+    assert len(old) == 2 and len(new) == 2  # removed + moved-from; moved-to + added
+    with pytest.raises(TypError, match="box id"):
+        edit_boxes(view, BoxEdit(remove=(42,)))
+    with pytest.raises(TypError, match="--add"):
+        edit_boxes(view, BoxEdit(add=((1.0, 2.0),)))
+
+
+def test_footprint_cells_cover_the_box_and_only_its_neighbourhood():
+    box = np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0]])
+    mask = footprint_mask(box, GRID, margin=1.0)
+    pts = np.array([[10.0, 0.0, 0.0], [12.5, 1.5, 0.0], [14.0, 0.0, 0.0], [10.0, 3.0, 0.0], [-40, -40, 0], [90, 0, 0]])
+    assert list(_in_cells(pts, mask, GRID)) == [True, True, False, False, False, False]
+    # 6 x 4 m with the margin at 0.8 m cells: about 7.5 x 5 cells (box_map's edge slack aside)
+    assert 30 <= mask.sum() <= 60
+
+
+def test_only_vehicles_can_carry_a_reference_sensor():
+    cfg = config_from_dict({"generate": {"min_distance": 1.0, "max_distance": 45.0}}).generate
+    skipped = new_skip_counts()
+    assert candidate_ids(_view(), cfg, skipped) == {3, 4}  # the pedestrian is not a candidate
+    assert skipped["reference_too_close"] == skipped["reference_out_of_range"] == 0
+    assert {"car", "van", "truck", "vehicle"} <= VEHICLE_LABELS
+
+
+def test_vehicle_frame_to_sensor_frame_keeps_world_geometry():
+    view = _view()
+    scene = Scene("s", "000000", {"7": view})
+    lifted = to_sensor_frame(scene, 2.2).ego
+    world = lambda v, p: (v.pose @ np.append(p[:3].astype(np.float64), 1.0))[:3]  # noqa: E731
+    for a, b in zip(view.points, lifted.points):
+        assert np.allclose(world(view, a), world(lifted, b), atol=1e-5)
+    assert np.allclose(lifted.boxes[:, 2], view.boxes[:, 2] - 2.2)
+
+
+@pytest.mark.skipif(not (DATA / "kitti_object_vis").is_dir(), reason="../shared/data not present")
+def test_kitti_frames_become_single_agent_opv2v_scenarios(tmp_path):
+    scenarios = read_frames("kitti", DATA / "kitti_object_vis")
+    assert [s[0].scenario for s in scenarios] == ["kitti_training_000000", "kitti_training_000001"]
+    folders = write_single_agent(scenarios, tmp_path)
+    for frames, folder in zip(scenarios, folders):
+        assert list_agents(folder) == ["ego"] and list_timestamps(folder) == ["000000"]
+        back = read_scene(folder, "000000").ego
+        src = frames[0].ego
+        assert back.points.shape == src.points.shape
+        assert np.allclose(back.points[:, :3], src.points[:, :3], atol=1e-5)
+        assert np.allclose(back.boxes, src.boxes, atol=1e-5) and back.box_labels == src.box_labels
+    with pytest.raises(TypError, match="--format"):
+        read_frames("lyft", DATA)
+    with pytest.raises(TypError, match="none found"):
+        read_frames("kitti", tmp_path)
+
+
+def _box_following_model(x_e, y_r, models, seed):
+    """Stands in for the diffusion model: ground everywhere, a car in every box of y_r.
+
+    It makes the edit's plumbing observable: an added box can only appear, and a removed one
+    only vanish, if edit_view conditions on the *edited* box map.
+    """
+    occ = np.zeros((len(y_r), GRID.shape[2], *GRID.shape[:2]), dtype=bool)
+    occ[:, 0] = True
+    occ[:, 1:4] |= y_r[:, :1].astype(bool)
+    return occ
+
+
+def test_edit_view_makes_occupancy_appear_and_disappear_in_the_edited_footprints(monkeypatch):
+    import tasks.edit as edit_module
+    from typ.voxel import voxelize
+
+    monkeypatch.setattr(edit_module, "generate_occupancy", _box_following_model)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-50, 50, (20000, 2)), np.full(20000, -2.7), np.zeros(20000)]
+    car = np.c_[rng.uniform(8.5, 11.5, (400, 1)), rng.uniform(-0.8, 0.8, (400, 1)), rng.uniform(-2.2, -1.0, (400, 1)),
+                np.zeros((400, 1))]
+    view = AgentView("1", np.concatenate([ground, car]).astype(np.float32), np.eye(4),
+                     np.array([[10.0, 0.0, -1.6, 4.0, 2.0, 1.5, 0.0]]), ("car",), np.array([5]))
+    added_at = (-20.0, 15.0, 0.0)
+    result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=(added_at,)), models=None, grid=GRID, seed=0)
+
+    def above_ground(points, box):
+        occ = voxelize(points, GRID)[:, :, 1:]
+        return int(occ[footprint_mask(np.array([box]), GRID, margin=0.0)].sum())
+
+    removed_box = view.boxes[0]
+    added_box = result.view.boxes[-1]
+    assert above_ground(view.points, removed_box) > 0 and above_ground(result.view.points, removed_box) == 0
+    assert above_ground(view.points, added_box) == 0 and above_ground(result.view.points, added_box) > 0
+    assert list(result.view.box_ids) == [6] and result.y_r[0][footprint_mask(np.array([added_box]), GRID, 0.0)].all()
+    # the removed car's points are not in the conditioning cloud either
+    assert not result.x_e[1:][:, footprint_mask(np.array([removed_box]), GRID, 0.0)].any()
+    # outside the edited footprints every real point is kept as it was
+    outside = ~_in_cells(view.points, result.footprint, GRID)
+    kept = result.view.points[~_in_cells(result.view.points, result.footprint, GRID)]
+    assert np.array_equal(np.sort(kept, axis=0), np.sort(view.points[outside], axis=0))
+    with pytest.raises(TypError, match="at least one"):
+        edit_module.edit_view(view, BoxEdit(), models=None, grid=GRID, seed=0)
