@@ -1,44 +1,54 @@
 """The whole pipeline as one Prefect flow, and the stage registry the CLI runs from."""
 from __future__ import annotations
 
+import contextlib
+import importlib
 import os
 from pathlib import Path
 from typing import Callable
 
 from prefect import flow
 
-from flows.common import runner
+from flows.common import api_for_workers, runner
 from typ.config import Config, load_config
+from typ.errors import TypError
 from typ.tracking import PARENT_ENV, stage_run
 
 
-def _flows() -> dict[str, Callable]:
-    # imported lazily: `typ --help` must not pay for Prefect's import of every stage
-    from flows.simulate import simulate_flow
-    from flows.voxelize import voxelize_flow
-    from flows.adapt import adapt_flow
-    from flows.generate import generate_flow
-    from flows.stage1 import stage1_flow
-    from flows.stage2 import stage2_flow
-    from flows.vqvae import vqvae_flow
-
-    return {"simulate": simulate_flow, "voxelize": voxelize_flow, "vqvae": vqvae_flow, "stage1": stage1_flow,
-            "adapt": adapt_flow, "stage2": stage2_flow, "generate": generate_flow}
+def _flow(stage: str) -> Callable:
+    # imported lazily, one stage at a time: `typ --help` must not pay for Prefect's import of
+    # every stage, and one stage's dependencies must not be needed to run another
+    module = importlib.import_module(f"flows.{stage}")
+    return getattr(module, f"{stage}_flow")
 
 
 STAGES = Config.STAGES
+#: stages that fan out per scene (a task runner: threads or Dask); the others train (torchrun/DDP)
+PER_SCENE = ("simulate", "voxelize", "generate")
+TRAINING = tuple(s for s in STAGES if s not in PER_SCENE)
 
 
-def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".") -> dict:
-    """Run one stage's flow with the task runner its params ask for."""
+def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_runner: str = "thread",
+              address: str | None = None) -> dict:
+    """Run one stage's flow; per-scene stages fan out on ``task_runner`` (thread | dask)."""
+    from typ import distributed
+
     cfg = load_config(Path(root) / params)
     block = cfg.block(stage)
-    fl = _flows()[stage]
-    return fl.with_options(task_runner=runner(getattr(block, "workers", 1)))(params=params, root=root)
+    if distributed.world_size() > 1 and stage not in TRAINING:
+        raise TypError("typ run", "stage", f"a training stage {list(TRAINING)} under torchrun "
+                       "(per-scene stages scale out with --runner dask)", stage)
+    fl = _flow(stage)
+    if stage not in PER_SCENE:  # training stages call their tasks in turn: one thread
+        task_runner, address = "thread", None
+    fl = fl.with_options(task_runner=runner(getattr(block, "workers", 1), task_runner, address))
+    with api_for_workers() if task_runner == "dask" else contextlib.nullcontext():
+        return fl(params=params, root=root)
 
 
 @flow(name="pipeline", log_prints=False, validate_parameters=False)
-def pipeline_flow(params: str = "params.yaml", root: str = ".") -> dict:
+def pipeline_flow(params: str = "params.yaml", root: str = ".", task_runner: str = "thread",
+                  address: str | None = None) -> dict:
     """Every stage in order under one parent MLflow run (stage runs nest under it)."""
     cfg = load_config(Path(root) / params)
     results = {}
@@ -47,7 +57,8 @@ def pipeline_flow(params: str = "params.yaml", root: str = ".") -> dict:
         os.environ[PARENT_ENV] = parent.run_id
         try:
             for stage in STAGES:
-                results[stage] = run_stage(stage, params=params, root=root)
+                results[stage] = run_stage(stage, params=params, root=root, task_runner=task_runner,
+                                           address=address)
         finally:
             if previous is None:
                 os.environ.pop(PARENT_ENV, None)

@@ -11,6 +11,8 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from typ.errors import TypError
 
 from typ.config import Config
@@ -24,7 +26,12 @@ def _setup_env(root: Path) -> None:
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # the ephemeral API server's 20 s default start-up limit is missed on a loaded 2-core machine
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
     os.environ.setdefault("DVC_NO_ANALYTICS", "1")
+    rank = int(os.environ.get("RANK", "0"))
+    if rank > 0:  # torchrun: each rank's temporary Prefect server keeps its own sqlite file
+        os.environ["PREFECT_HOME"] = str(Path(os.environ["PREFECT_HOME"]) / f"rank-{rank}")
 
 
 def _cmd_run(args) -> int:
@@ -33,14 +40,55 @@ def _cmd_run(args) -> int:
         raise TypError("typ run", "stage", f"one of {['all', *STAGES]}", args.stage)
     from typ.config import load_config
 
-    load_config(root / args.params)  # fail on bad params before Prefect starts
+    cfg = load_config(root / args.params)  # fail on bad params before Prefect starts
     _setup_env(root)
+    from typ import distributed
+
+    distributed.setup(cfg.runtime.device, cfg.runtime.precision, where=cfg.source)
     from flows.pipeline import pipeline_flow, run_stage
 
-    if args.stage == "all":
-        pipeline_flow(params=args.params, root=str(root))
+    try:
+        if args.stage == "all":
+            pipeline_flow(params=args.params, root=str(root), task_runner=args.runner, address=args.address)
+        else:
+            run_stage(args.stage, params=args.params, root=str(root), task_runner=args.runner, address=args.address)
+    finally:
+        distributed.teardown()
+    return 0
+
+
+def _cmd_serve(args) -> int:
+    from typ.config import load_config
+
+    root = Path(args.root).resolve()
+    load_config(root / args.params)  # fail on bad params before a server starts
+    _setup_env(root)
+    server = None
+    if not os.environ.get("PREFECT_API_URL"):
+        from flows.server import LocalServer
+
+        server = LocalServer.start(Path(os.environ["PREFECT_HOME"]), host=args.host, port=args.port)
+        os.environ["PREFECT_API_URL"] = server.api_url  # before Prefect is imported: it reads this once
+        print(f"Prefect server {server.ui_url} (state in {os.environ['PREFECT_HOME']}, log {server.log})", flush=True)
     else:
-        run_stage(args.stage, params=args.params, root=str(root))
+        print(f"Prefect API {os.environ['PREFECT_API_URL']}", flush=True)
+    try:
+        from flows.deploy import serve
+
+        serve(root, args.params, only=args.only, poll_seconds=args.poll_seconds)
+    finally:
+        if server is not None:
+            server.stop()
+    return 0
+
+
+def _cmd_compare(args) -> int:
+    from typ.compare import compare
+
+    root = Path(args.root)
+    out = compare(args.runs, out=root / args.out, name=args.name, tracking_uri=args.tracking_uri, root=root,
+                  params=root / args.params)
+    print(f"wrote {out}")
     return 0
 
 
@@ -63,6 +111,57 @@ def _cmd_report(args) -> int:
     return 0
 
 
+def _cmd_generate(args) -> int:
+    from tasks.ingest import FORMATS
+
+    if args.format not in FORMATS:
+        raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", args.format)
+    root = Path(args.root)
+    _setup_env(root)
+    from flows.generate import generate_external
+
+    metrics = generate_external(args.format, Path(args.input), Path(args.out), root=root, params=args.params,
+                                references_per_frame=args.references, roadside_units=args.rsu)
+    print(f"generated {metrics['references']} reference views for {metrics['frames']} frames "
+          f"({metrics['skipped_unchanged']} scenarios unchanged) under {args.out}")
+    return 0
+
+
+def _numbers(text: str, flag: str, counts: tuple[int, ...]) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) not in counts:
+        raise TypError("typ edit", flag, f"{' or '.join(str(c) for c in counts)} comma-separated numbers", text)
+    return values
+
+
+def _cmd_edit(args) -> int:
+    from tasks.edit import BoxEdit
+
+    move = {}
+    for spec in args.move:
+        vid, _, delta = spec.partition(":")
+        if not vid.lstrip("-").isdigit():
+            raise TypError("typ edit", "--move", "ID:dx,dy[,dyaw_deg]", spec)
+        dx, dy, *dyaw = _numbers(delta, "--move", (2, 3))
+        move[int(vid)] = (dx, dy, float(np.radians(dyaw[0])) if dyaw else 0.0)
+    add = []
+    for spec in args.add:
+        x, y, yaw, *lwh = _numbers(spec, "--add", (3, 6))
+        add.append((x, y, float(np.radians(yaw)), *lwh))
+    edit = BoxEdit(remove=tuple(args.remove), move=move, add=tuple(add))
+    root = Path(args.root)
+    _setup_env(root)
+    from flows.generate import edit_scenario
+
+    path = edit_scenario(Path(args.scenario), args.timestamp, edit, Path(args.out), root=root, params=args.params,
+                         agent=args.agent, seed=args.seed)
+    print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="typ", description="typ: turn single-agent LiDAR datasets into collaborative ones (Transfer Your Perspective).")
     parser.add_argument("--root", default=".", help="project root holding params.yaml (default: .)")
@@ -71,11 +170,51 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p = sub.add_parser("run", help="run one stage's Prefect flow, or `all` for the whole pipeline")
     p.add_argument("stage", help=f"one of: all, {', '.join(STAGES)}")
+    p.add_argument("--runner", choices=("thread", "dask"), default="thread",
+                   help="task runner of the per-scene stages (simulate, voxelize, generate): threads here, "
+                        "or Dask (a LocalCluster of <workers> processes, or --address)")
+    p.add_argument("--address", help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (with --runner dask)")
     p.set_defaults(fn=_cmd_run)
+    p = sub.add_parser("serve", help="serve the Prefect deployments (scheduled pipeline, watched-folder generate); "
+                                     "starts a local Prefect server unless PREFECT_API_URL is set")
+    p.add_argument("--only", nargs="+", metavar="NAME", help="serve only these: pipeline, watch-generate, typ-stage")
+    p.add_argument("--host", default="127.0.0.1", help="local server address (default: loopback)")
+    p.add_argument("--port", type=int, default=4200, help="local server port (default: 4200)")
+    p.add_argument("--poll-seconds", type=float, help="how often to ask the server for due runs (Prefect's default: 10)")
+    p.set_defaults(fn=_cmd_serve)
+    p = sub.add_parser("compare", help="compare two or more MLflow runs: reports/compare/<name>.md + plots")
+    p.add_argument("runs", nargs="+", metavar="RUN_OR_EXPERIMENT",
+                   help="run id (a pipeline run brings its stage runs), DVC experiment name, or MLflow experiment "
+                        "name (its latest pipeline run)")
+    p.add_argument("--name", help="report name (default: from the runs)")
+    p.add_argument("--out", default="reports/compare", help="folder for the report (default: reports/compare)")
+    p.add_argument("--tracking-uri", help="MLflow store (default: MLFLOW_TRACKING_URI, else params' tracking.uri)")
+    p.set_defaults(fn=_cmd_compare)
     p = sub.add_parser("check", help="load and validate params.yaml; print the values in effect")
     p.set_defaults(fn=_cmd_check)
     p = sub.add_parser("report", help="write reports/summary.md from the stage metrics and benches")
     p.set_defaults(fn=_cmd_report)
+    p = sub.add_parser("generate", help="turn KITTI / nuScenes / Waymo frames into collaborative OPV2V scenarios "
+                                        "with the trained models")
+    p.add_argument("--format", required=True, help="kitti | nuscenes | waymo")
+    p.add_argument("--input", required=True, help="KITTI object root, nuScenes folder (bins + info json), "
+                                                  "or Waymo .tfrecord file / folder")
+    p.add_argument("--out", default="data/generated_external", help="output root (default: data/generated_external)")
+    p.add_argument("--references", type=int, default=None, help="reference views per frame (default: params)")
+    p.add_argument("--rsu", type=int, default=None, help="roadside units per scenario (default: params)")
+    p.set_defaults(fn=_cmd_generate)
+    p = sub.add_parser("edit", help="regenerate one view with boxes added, removed or moved (TYP Fig. 5)")
+    p.add_argument("scenario", help="an OPV2V-layout scenario folder")
+    p.add_argument("--timestamp", required=True, help="the frame to edit, e.g. 000000")
+    p.add_argument("--agent", default=None, help="the agent whose view is edited (default: the ego)")
+    p.add_argument("--remove", type=int, action="append", default=[], metavar="ID", help="remove box ID")
+    p.add_argument("--move", action="append", default=[], metavar="ID:dx,dy[,dyaw]",
+                   help="move box ID by dx, dy metres (and dyaw degrees) in the sensor frame")
+    p.add_argument("--add", action="append", default=[], metavar="x,y,yaw[,l,w,h]",
+                   help="add a car at x, y (m) with heading yaw (degrees), default size 4.5x1.85x1.5 m")
+    p.add_argument("--out", required=True, help="folder the edited copy of the scenario is written to")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(fn=_cmd_edit)
     return parser
 
 

@@ -272,29 +272,247 @@ class Stage2Config:
 
 
 @dataclass(frozen=True)
+class SelftrainConfig:
+    """Stage ``selftrain`` (TYP §3.4): fine-tune the adapter on source tuples plus target data.
+
+    Switches (TYP Table 4): ``discriminator`` — source tuples encoded by the adapted E_src
+    (stage ``adapt``; off: by E_tgt, the adapter trained anew: "no adaptation");
+    ``self_training`` — pseudo references (x̂_r, x_e', y_r) sampled in target scenes;
+    ``dummy_ego`` — target ego views (x_r, y_r) with an empty ego, x_e = 0. ``ablation``
+    also trains and scores every row of Table 4, whatever the switches say.
+    """
+
+    discriminator: bool
+    self_training: bool
+    dummy_ego: bool
+    ablation: bool
+    pseudo_references: int
+    min_distance: float
+    max_distance: float
+    epochs: int
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    sampler: Literal["ddim", "ddpm", "dpmsolver++", "unipc"]
+    sample_steps: int
+    eval_pairs: int
+    sim: str
+    voxels: str
+    vqvae: str
+    adapt: str
+    stage1: str
+    stage2: str
+    source_domain: str
+    source_split: str
+    target_domain: str
+    target_split: str
+    target_eval_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "pseudo_references", "epochs", "batch_size", "lr", "checkpoint_every",
+                         "sample_steps", "eval_pairs", "max_distance")
+        if not 0 <= self.min_distance < self.max_distance:
+            raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
+                           self.min_distance)
+
+
+@dataclass(frozen=True)
+class GenerateSet:
+    """One (dataset, split) of single-agent scenarios to turn collaborative.
+
+    references: ``vehicles`` — reference poses sampled from the ego's labelled vehicles
+    (TYP §4.5, the ColWaymo analogue); ``cavs`` — the scenario's own cooperating agents, each
+    replaced by a cloud generated from the ego's at its true pose (only their poses are read:
+    the oracle comparison of TYP Tables 1–2).
+    """
+
+    dataset: str
+    split: str
+    references: Literal["vehicles", "cavs"]
+
+
+@dataclass(frozen=True)
 class GenerateConfig:
     """Stage ``generate`` (TYP §4.5): reference views for single-agent frames, written as OPV2V agents."""
 
     references_per_frame: int
+    #: roadside units per scenario (``vehicles`` sets): virtual sensors on observed ground, facing the ego
+    roadside_units: int
     min_distance: float
     max_distance: float
     sampler: Literal["ddim", "ddpm", "dpmsolver++", "unipc"]
     sample_steps: int
     seed: int
     input: str
-    dataset: str
-    split: str
+    sets: tuple[GenerateSet, ...]
     vqvae: str
     stage1: str
-    stage2: str
+    adapter: str
     out: str
     workers: int
 
     def check(self, where: str, name: str) -> None:
         _positive_fields(self, where, name, "references_per_frame", "sample_steps", "max_distance", "workers")
+        if self.roadside_units < 0:
+            raise TypError(where, f"{name}.roadside_units", "a count >= 0", self.roadside_units)
         if not 0 <= self.min_distance < self.max_distance:
             raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
                            self.min_distance)
+        if not self.sets:
+            raise TypError(where, f"{name}.sets", "at least one {dataset, split, references}", [])
+        seen = set()
+        for i, s in enumerate(self.sets):
+            if (s.dataset, s.split) in seen:
+                raise TypError(where, f"{name}.sets[{i}]", "each (dataset, split) once", [s.dataset, s.split])
+            seen.add((s.dataset, s.split))
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """PointPillars of the fusion benchmark (``models/pointpillars.py``), one per fusion method."""
+
+    lidar_range: tuple[float, float, float, float, float, float]
+    voxel_size: float
+    max_points_per_pillar: int
+    max_pillars: int
+    pillar_channels: int
+    layer_nums: tuple[int, ...]
+    layer_strides: tuple[int, ...]
+    num_filters: tuple[int, ...]
+    upsample_strides: tuple[int, ...]
+    num_upsample_filters: tuple[int, ...]
+    anchor_size: tuple[float, float, float]
+    anchor_z: float
+
+    def check(self, where: str, name: str) -> None:
+        r = self.lidar_range
+        if not (r[0] < r[3] and r[1] < r[4] and r[2] < r[5]):
+            raise TypError(where, f"{name}.lidar_range", "[x_min, y_min, z_min, x_max, y_max, z_max], min < max",
+                           list(r))
+        _positive_fields(self, where, name, "voxel_size", "max_points_per_pillar", "max_pillars", "pillar_channels")
+        lists = (self.layer_nums, self.layer_strides, self.num_filters, self.upsample_strides,
+                 self.num_upsample_filters)
+        if not self.layer_nums or len({len(v) for v in lists}) != 1:
+            raise TypError(where, f"{name}.layer_nums", "layer_nums, layer_strides, num_filters, upsample_strides "
+                           "and num_upsample_filters of one equal, non-zero length", [len(v) for v in lists])
+        stride = 1
+        for s in self.layer_strides:
+            stride *= s
+        for axis, lo, hi in (("x", r[0], r[3]), ("y", r[1], r[4])):
+            cells = (hi - lo) / self.voxel_size
+            if abs(cells - round(cells)) > 1e-6 or round(cells) % stride:
+                raise TypError(where, f"{name}.lidar_range", f"an {axis} extent of a multiple of voxel_size x "
+                               f"total backbone stride = {self.voxel_size} x {stride} m", [lo, hi])
+        if any(v <= 0 for v in self.anchor_size):
+            raise TypError(where, f"{name}.anchor_size", "3 positive sizes (l, w, h) in metres", list(self.anchor_size))
+
+
+@dataclass(frozen=True)
+class V2XViTConfig:
+    """The V2X-ViT fusion transformer (``models/fusion.V2XViT``) on the detector's backbone."""
+
+    dim: int
+    depth: int
+    heads: int
+    dim_head: int
+    window_sizes: tuple[int, ...]
+    window_heads: tuple[int, ...]
+    window_dim_heads: tuple[int, ...]
+    mlp_dim: int
+    dropout: float
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "dim", "depth", "heads", "dim_head", "mlp_dim")
+        if self.dim % 2 or not self.window_sizes or \
+                not len(self.window_sizes) == len(self.window_heads) == len(self.window_dim_heads):
+            raise TypError(where, f"{name}.window_sizes", "an even dim and equal-length window lists",
+                           [self.dim, list(self.window_sizes)])
+        if not 0 <= self.dropout < 1:
+            raise TypError(where, f"{name}.dropout", "a probability in [0, 1)", self.dropout)
+
+
+@dataclass(frozen=True)
+class RobustnessConfig:
+    """V2VSSC §IV curves: AP against pose noise, delay and message compression."""
+
+    position_std: tuple[float, ...]
+    heading_std_deg: tuple[float, ...]
+    delay_ms: tuple[int, ...]
+    quantization_bits: tuple[int, ...]
+
+    def check(self, where: str, name: str) -> None:
+        for key in ("position_std", "heading_std_deg", "delay_ms"):
+            values = getattr(self, key)
+            if any(v < 0 for v in values):
+                raise TypError(where, f"{name}.{key}", "values >= 0", list(values))
+        if any(d % 100 for d in self.delay_ms):
+            raise TypError(where, f"{name}.delay_ms", "multiples of 100 ms (one 10 Hz frame)", list(self.delay_ms))
+        if any(not 1 <= b <= 16 for b in self.quantization_bits):
+            raise TypError(where, f"{name}.quantization_bits", "bit widths in [1, 16]", list(self.quantization_bits))
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Stage ``fusion`` (TYP §4.2–4.5, Tables 1–3; V2VSSC §IV): collaborative detection benchmark.
+
+    Trains PointPillars with every fusion method on real_cav with oracle vs generated
+    cooperating clouds, pretrains on generated target / source data and fine-tunes on 0,
+    each of ``finetune_scenes`` and all real_cav training scenarios, and measures robustness.
+    ``warm_start``: early and intermediate fusion start from the single-agent (late-fusion)
+    detector trained on the same data and train ``warm_start_steps`` more at ``finetune_lr``
+    (off: from scratch, ``steps`` / ``pretrain_steps`` like the others, as OpenCOOD trains them).
+    """
+
+    methods: tuple[Literal["none", "early", "late", "attfuse", "v2xvit"], ...]
+    detector: DetectorConfig
+    v2xvit: V2XViTConfig
+    robustness: RobustnessConfig
+    comm_range: float
+    max_agents: int
+    batch_size: int
+    lr: float
+    finetune_lr: float
+    steps: int
+    pretrain_steps: int
+    finetune_steps: int
+    finetune_scenes: tuple[int, ...]
+    warm_start: bool
+    warm_start_steps: int
+    score_threshold: float
+    nms_threshold: float
+    max_boxes: int
+    seed: int
+    checkpoint_every: int
+    sim: str
+    generated: str
+    real_domain: str
+    train_split: str
+    test_split: str
+    source_domain: str
+    source_split: str
+    colwaymo_domain: str
+    colwaymo_split: str
+    reports: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        self.detector.check(where, f"{name}.detector")
+        self.v2xvit.check(where, f"{name}.v2xvit")
+        self.robustness.check(where, f"{name}.robustness")
+        if not self.methods or len(set(self.methods)) != len(self.methods):
+            raise TypError(where, f"{name}.methods", "each of none/early/late/attfuse/v2xvit at most once",
+                           list(self.methods))
+        _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
+                         "pretrain_steps",
+                         "finetune_steps", "warm_start_steps", "max_boxes", "checkpoint_every")
+        if any(n < 1 for n in self.finetune_scenes):
+            raise TypError(where, f"{name}.finetune_scenes", "scenario counts >= 1 (0 and all are always run)",
+                           list(self.finetune_scenes))
+        for key in ("score_threshold", "nms_threshold"):
+            if not 0 <= getattr(self, key) < 1:
+                raise TypError(where, f"{name}.{key}", "a number in [0, 1)", getattr(self, key))
 
 
 @dataclass(frozen=True)
@@ -310,6 +528,36 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class RuntimeConfig:
+    """Where training runs: ``device`` (auto picks cuda, then mps, then cpu) and the autocast
+    ``precision`` of each training step (bf16 needs no loss scaling; fp16 has none here)."""
+
+    device: Literal["auto", "cpu", "cuda", "mps"]
+    precision: Literal["fp32", "bf16", "fp16"]
+
+    def check(self, where: str, name: str) -> None:
+        pass  # the Literal types are the whole check; whether the device exists is known at run time
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """``typ serve``: cron schedules of the deployments, and the folder watched for new
+    single-agent scenarios (``<watch>/<dataset>/<split>/<scenario>``, OPV2V layout) whose
+    collaborative versions ``generate`` writes under ``watch_out``."""
+
+    pipeline_cron: str
+    watch_cron: str
+    watch: str
+    watch_out: str
+
+    def check(self, where: str, name: str) -> None:
+        for key in ("pipeline_cron", "watch_cron"):
+            if len(getattr(self, key).split()) != 5:
+                raise TypError(where, f"{name}.{key}", "a 5-field cron expression, e.g. '0 3 * * *'",
+                               getattr(self, key))
+
+
+@dataclass(frozen=True)
 class Config:
     profile: Literal["tiny", "paper"]
     tracking: TrackingConfig
@@ -319,11 +567,16 @@ class Config:
     stage1: Stage1Config
     adapt: AdaptConfig
     stage2: Stage2Config
+    selftrain: SelftrainConfig
     generate: GenerateConfig
+    fusion: FusionConfig
+    runtime: RuntimeConfig
+    serve: ServeConfig
     source: str = field(default="params.yaml", compare=False)
 
     #: stage name -> attribute holding its block, in pipeline order
-    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2", "generate")
+    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2", "selftrain",
+                                                 "generate", "fusion")
 
     def block(self, stage: str):
         if stage not in self.STAGES:
@@ -350,9 +603,12 @@ def load_config(path: str | Path = "params.yaml", *, overrides: dict | None = No
     path = Path(path)
     where = str(path)
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except FileNotFoundError:
         raise TypError(where, "file", "a params.yaml in the project root (run typ from there)") from None
+    except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not text
+        raise TypError(where, "file", "a readable UTF-8 params.yaml",
+                       f"{type(exc).__name__}: {getattr(exc, 'strerror', None) or exc}") from None
     except yaml.YAMLError as exc:
         raise TypError(where, "yaml", "valid YAML", str(exc).splitlines()[0]) from None
     if not isinstance(raw, dict):
@@ -370,7 +626,7 @@ def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict |
     merged["profile"] = profile
     cfg = _build(Config, merged, where, "")
     cfg = dataclasses.replace(cfg, source=where)
-    for name in ("tracking",) + Config.STAGES:
+    for name in ("tracking", "runtime", "serve") + Config.STAGES:
         getattr(cfg, name).check(where, name)
     return cfg
 
