@@ -127,6 +127,11 @@ def api_for_workers() -> Iterator[None]:
         yield
 
 
+def plain_task(fn: Callable, name: str):
+    """``fn`` as a Prefect task without result caching: training and sampling must really run."""
+    return task(fn, name=name, cache_policy=NO_CACHE)
+
+
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
     """``metrics/<stage>.json`` for DVC; under torchrun only rank 0 writes it."""
     from typ.distributed import is_main

@@ -8,6 +8,7 @@ from prefect.cache_policies import NO_CACHE
 
 from flows.common import Timer, numeric_leaves, write_metrics
 from tasks import fusion as stage
+from tasks import fusion_report
 from typ.config import load_config
 from typ.io import write_json
 from typ.tracking import stage_run
@@ -29,10 +30,10 @@ def fusion_flow(params: str = "params.yaml", root: str = ".") -> dict:
             curves = task(stage.robustness, name="robustness", cache_policy=NO_CACHE)(bench)
         results = {**stage.summarize(bench, table2, table3, curves), "seconds_total": round(timer.seconds, 3),
                    "seconds_training": round(sum(bench.seconds.values()), 3)}
-        reports = task(stage.write_report, name="report", cache_policy=NO_CACHE)(
+        reports = task(fusion_report.write_report, name="report", cache_policy=NO_CACHE)(
             results, block, root_path / block.reports)
         write_json(out / "results.json", results)
-        metrics = {**stage.metrics_of(results), "seconds_total": results["seconds_total"],
+        metrics = {**fusion_report.metrics_of(results), "seconds_total": results["seconds_total"],
                    "seconds_training": results["seconds_training"]}
         path = write_metrics(STAGE, metrics, root_path)
         run.metrics(numeric_leaves(metrics))

@@ -12,10 +12,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from prefect import flow, task
-from prefect.cache_policies import NO_CACHE
+from prefect import flow
 
-from flows.common import Timer, numeric_leaves, write_metrics
+from flows.common import Timer, numeric_leaves, plain_task, write_metrics
 from tasks import accuracy, generate, stage1
 from tasks import selftrain as stage
 from tasks.generate import EGO_CAR_LWH
@@ -33,10 +32,6 @@ from typ.voxel import voxelize
 
 STAGE = "selftrain"
 REPORT = Path("reports") / "generation_accuracy.md"
-
-
-def _task(fn, name):
-    return task(fn, name=name, cache_policy=NO_CACHE)
 
 
 @flow(name=STAGE, log_prints=False, validate_parameters=False)
@@ -75,7 +70,7 @@ def selftrain_flow(params: str = "params.yaml", root: str = ".") -> dict:
         with Timer() as timer:
             bases = {True: load_adapter(root_path / block.stage2 / "adapter.pt", ldm)}
             if False in source:
-                bases[False] = _task(stage.no_adaptation, "no_adaptation")(
+                bases[False] = plain_task(stage.no_adaptation, "no_adaptation")(
                     cfg.stage2, ldm, schedule, timesteps, source[False], out=out, log_fn=run.metrics)
             refs = None
             if any(v.self_training for v in variants):
@@ -96,7 +91,7 @@ def selftrain_flow(params: str = "params.yaml", root: str = ".") -> dict:
                     parts.append(pseudo[v.discriminator])
                 if v.dummy_ego:
                     parts.append(dummy)
-                adapters[v.name] = _task(stage.finetune, f"finetune_{v.name}")(
+                adapters[v.name] = plain_task(stage.finetune, f"finetune_{v.name}")(
                     block, v, base, ldm, schedule, timesteps, stage.concat(*parts), out=out, log_fn=run.metrics)
         metrics["seconds_training"] = round(timer.seconds, 3)
         save_adapter(adapters[chosen.name], cfg.stage2.adapter_res_blocks, out)
@@ -131,7 +126,7 @@ def selftrain_flow(params: str = "params.yaml", root: str = ".") -> dict:
             occupancy[labels.get(v.name, v.name)] = by_variant[v.name]
         occupancy["hybrid: re-simulation where the ego saw, TYP elsewhere"] = hybrid(resim, by_variant[chosen.name],
                                                                                   seen)
-        score = _task(accuracy.score, "score")
+        score = plain_task(accuracy.score, "score")
         scored = {name: score(occ, truth, grid, seen) for name, occ in occupancy.items()}
         table4 = {labels.get(v.name, v.name): {**scored[labels.get(v.name, v.name)],
                                                "discriminator": v.discriminator, "self_training": v.self_training,

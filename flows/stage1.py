@@ -5,10 +5,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from prefect import flow, task
-from prefect.cache_policies import NO_CACHE
+from prefect import flow
 
-from flows.common import Timer, numeric_leaves, write_metrics
+from flows.common import Timer, numeric_leaves, plain_task, write_metrics
 from models.postprocess import postprocess
 from tasks import stage1 as stage
 from tasks.voxel_data import load_views
@@ -17,10 +16,6 @@ from typ.config import load_config
 from typ.tracking import stage_run
 
 STAGE = "stage1"
-
-
-def _task(fn, name):
-    return task(fn, name=name, cache_policy=NO_CACHE)
 
 
 @flow(name=STAGE, log_prints=False, validate_parameters=False)
@@ -35,10 +30,10 @@ def stage1_flow(params: str = "params.yaml", root: str = ".") -> dict:
     grid = splits["train"].grid
     metrics: dict = {f"{k}_views": len(v) for k, v in splits.items()}
     with stage_run(STAGE, cfg, root=root_path) as run:
-        latents, cond = _task(stage.encode_views, "encode")(x_vq, y_vq, splits["train"], mirror=True)
+        latents, cond = plain_task(stage.encode_views, "encode")(x_vq, y_vq, splits["train"], mirror=True)
         stage.check_latents(block, latents.shape[-1], cfg.source)
         with Timer() as timer:
-            model = _task(stage.train, "train")(block, latents, cond, out=out, log_fn=run.metrics)
+            model = plain_task(stage.train, "train")(block, latents, cond, out=out, log_fn=run.metrics)
         metrics["seconds_training"] = round(timer.seconds, 3)
         run.log_model("stage1-ldm", model, {"z_t": model.normalize(latents[:2]),
                                             "t": torch.tensor([0, block.train_timesteps - 1]),
@@ -51,10 +46,10 @@ def stage1_flow(params: str = "params.yaml", root: str = ".") -> dict:
             logits = stage.sample_logits(model, x_vq, y_lat, cfg=block, generator=torch.Generator().manual_seed(seed))
             return logits, x_true
 
-        val_logits, val_true = _task(generate, "sample-val")(splits["val"], block.seed + 1)
+        val_logits, val_true = plain_task(generate, "sample-val")(splits["val"], block.seed + 1)
         thresholds = stage.tune_thresholds(val_logits, val_true, block, block.seed)
         with Timer() as timer:
-            test_logits, test_true = _task(generate, "sample-test")(splits["test"], block.seed + 2)
+            test_logits, test_true = plain_task(generate, "sample-test")(splits["test"], block.seed + 2)
         occupancy = postprocess(test_logits, low=thresholds["low"], high=thresholds["high"],
                                 noise_std=thresholds["noise_std"], generator=torch.Generator().manual_seed(block.seed))
         truth = test_true.numpy() > 0.5

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from tasks import fusion as F
+from tasks import fusion_report as R
 from tasks.fusion_data import FusionDataset
 from tasks.training import checkpoints
 from typ.boxes_bev import rotated_iou_bev
@@ -106,12 +107,12 @@ def test_every_table_and_report_on_tiny_data(project):
     assert curves["methods"]["early"]["bytes_per_message"] > curves["methods"]["attfuse"]["bytes_per_message"] / 100
 
     results = {**F.summarize(bench, table2, table3, curves), "seconds_total": 1.0, "seconds_training": 0.5}
-    paths = F.write_report(results, cfg, root / "reports")
+    paths = R.write_report(results, cfg, root / "reports")
     assert [p.name for p in paths] == ["fusion.md", "fusion_pr.png", "fusion_robustness.png"]
     assert all(p.stat().st_size > 0 for p in paths)
     text = paths[0].read_text()
     assert "TYP Tables 1–2" in text and "TYP Table 3" in text and "V2X-ViT" in text and "skipped" not in text
-    metrics = json.loads(json.dumps(F.metrics_of(results)))
+    metrics = json.loads(json.dumps(R.metrics_of(results)))
     assert metrics["table2"]["attfuse"]["generated"]["ap50"].keys() == {"overall", "0-30", "30-50", "50-100"}
     assert (root / "artifacts" / "fusion" / "models" / "oracle-v2xvit.pt").is_file()
 
@@ -127,7 +128,7 @@ def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):
     assert "skipped" in table3["early"]["colwaymo"] and _valid(table3["early"]["source"]["all"])
     results = {**F.summarize(bench, table2, table3, F.robustness(bench)), "seconds_total": 1.0,
                "seconds_training": 0.5}
-    assert "## Skipped" in F.report_markdown(results, cfg)
+    assert "## Skipped" in R.report_markdown(results, cfg)
 
 
 def test_training_resumes_from_its_last_checkpoint(project, tmp_path):
