@@ -18,7 +18,6 @@ Writes <out>/bench_two_stage.md atomically; prints the table.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -123,7 +122,7 @@ def main(argv=None) -> int:
     source_x = load_vqvae(Path(s2.adapt) / "source_vq")
     ldm, saved = stage1.load_model(Path(s2.stage1))
     two_stage_adapter = load_adapter(Path(s2.out) / "adapter.pt", ldm)
-    sampling = dataclasses.replace(s1, sampler=st.sampler, sample_steps=st.sample_steps, eta=0.0)
+    sampling = stage1.sampling_config(s1, saved, st.sampler, st.sample_steps)
 
     src = stack(list(iter_pairs(Path(s2.sim) / s2.source_domain / s2.source_split, grid)))
     x_r, y_r, x_e = encode(source_x, y_vq, *src)

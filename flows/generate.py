@@ -34,8 +34,7 @@ def load_models(root: Path, cfg) -> stage.Models:
             raise TypError(p, "file", "a trained model (run the earlier stages first: dvc repro)", "missing")
     ldm, saved = stage1.load_model(root / block.stage1)
     adapter = load_adapter(paths[3], ldm)
-    sampling = dataclasses.replace(cfg.stage1, sampler=block.sampler, sample_steps=block.sample_steps,
-                                   schedule=saved["schedule"], train_timesteps=saved["train_timesteps"], eta=0.0)
+    sampling = stage1.sampling_config(cfg.stage1, saved, block.sampler, block.sample_steps)
     return stage.Models(load_vqvae(root / block.vqvae / "x"), load_vqvae(root / block.vqvae / "y"), ldm,
                         adapter, saved["postprocess"], sampling, hash_files(paths)[:16])
 

@@ -7,7 +7,6 @@ the hybrid — on held-out target pairs where the true reference view exists.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
@@ -44,8 +43,7 @@ def selftrain_flow(params: str = "params.yaml", root: str = ".") -> dict:
     target_x, y_vq = load_vqvae(root_path / block.vqvae / "x"), load_vqvae(root_path / block.vqvae / "y")
     ldm, saved = stage1.load_model(root_path / block.stage1)
     schedule, timesteps = saved["schedule"], saved["train_timesteps"]
-    sampling = dataclasses.replace(cfg.stage1, sampler=block.sampler, sample_steps=block.sample_steps,
-                                   schedule=schedule, train_timesteps=timesteps, eta=0.0)
+    sampling = stage1.sampling_config(cfg.stage1, saved, block.sampler, block.sample_steps)
 
     def models(adapter) -> generate.Models:
         return generate.Models(target_x, y_vq, ldm, adapter, saved["postprocess"], sampling, digest="")

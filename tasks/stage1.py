@@ -8,6 +8,8 @@ weights, schedule, thresholds), ``<out>/postprocess.json``, ``<out>/checkpoints/
 """
 from __future__ import annotations
 
+import dataclasses
+
 import itertools
 from pathlib import Path
 from typing import Callable
@@ -148,6 +150,13 @@ def generation_metrics(occupancy: np.ndarray, truth: np.ndarray, grid: Grid) -> 
         scores["mmd_r2dm"] = mmd_bev([real[i] for i in usable], [gen[i] for i in usable], preset="r2dm")
         scores["chamfer_m"] = float(np.mean([chamfer_distance(gen[i], real[i]) for i in usable]))
     return scores
+
+
+def sampling_config(cfg: Stage1Config, saved: dict, sampler: str, steps: int) -> Stage1Config:
+    """Stage 1's sampling settings with another sampler and step count, for the model ``saved``
+    (:func:`load_model`): its own β schedule and T, whatever params.yaml says now; DDIM's η = 0."""
+    return dataclasses.replace(cfg, sampler=sampler, sample_steps=steps, schedule=saved["schedule"],
+                               train_timesteps=saved["train_timesteps"], eta=0.0)
 
 
 def save_model(model: LatentDiffusion, cfg: Stage1Config, thresholds: dict, folder: Path) -> None:
