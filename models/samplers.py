@@ -178,7 +178,9 @@ def sample(
     if "generator" in step_params:
         extra["generator"] = generator
 
-    scheduler.set_timesteps(int(num_steps), device=device)
+    # the schedule stays on the CPU (diffusers keeps its sigmas there too): reading a step's t
+    # needs no device sync, and only x_t and the model's inputs live on ``device``
+    scheduler.set_timesteps(int(num_steps))
     # x_t is carried in float32 whatever the model's dtype: in bfloat16 (8-bit mantissa) the
     # small per-step updates round away and the sample drifts (DDPM, 1000 steps: mean -0.13).
     state_dtype = torch.float64 if dtype == torch.float64 else torch.float32

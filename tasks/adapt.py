@@ -27,6 +27,7 @@ from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoi
                             seed_everything, steps_for)
 from tasks.voxel_data import ViewSet
 from tasks.vqvae import save_model as save_vqvae
+from typ import distributed
 from typ.config import AdaptConfig, as_dict
 from typ.io import hash_obj
 from typ.metrics import jsd_bev, mmd_bev, occupancy_iou
@@ -63,10 +64,12 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
 
     def step_fn(step: int) -> dict[str, float]:
         rng = batch_rng(cfg.seed, step)
-        x_src, _ = source_views.batch(_pick(source_views, rng, cfg.batch_size),
-                                      flips=rng.random(cfg.batch_size) < 0.5)
-        x_tgt, _ = target_views.batch(_pick(target_views, rng, cfg.batch_size),
-                                      flips=rng.random(cfg.batch_size) < 0.5)
+        src, src_flips = _pick(source_views, rng, cfg.batch_size), rng.random(cfg.batch_size) < 0.5
+        tgt, tgt_flips = _pick(target_views, rng, cfg.batch_size), rng.random(cfg.batch_size) < 0.5
+        # as many source as target views on every rank, so both hinge terms shard alike
+        src, src_flips, tgt, tgt_flips = distributed.local_batch(src, src_flips, tgt, tgt_flips)
+        x_src = source_views.batch(src, flips=src_flips)[0].to(distributed.device())
+        x_tgt = target_views.batch(tgt, flips=tgt_flips)[0].to(distributed.device())
         source_vq.train()
         with torch.no_grad():
             f_tgt = target_vq.encode_pre_quant(x_tgt)
@@ -75,7 +78,7 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
         opt_d.zero_grad(set_to_none=True)
         d_loss.backward()
         opt_d.step()
-        d_value = float(d_loss.detach())
+        d_value = distributed.all_reduce_mean({"d": float(d_loss.detach())})["d"]  # every rank stops alike
         if d_value > cfg.max_disc_loss:
             raise TrainingDiverged(f"adapt: step {step}: discriminator loss {d_value:.3g} > "
                                    f"max_disc_loss={cfg.max_disc_loss}; stopped before writing a model")
@@ -88,18 +91,19 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
         loss = rec + adv + commit
         opt_g.zero_grad(set_to_none=True)
         loss.backward()
-        norm = grad_norm(trainable)
         opt_g.step()
+        norm = grad_norm(trainable)
         return {"loss": float(loss.detach()), "rec": float(rec.detach()), "adv": float(adv.detach()),
                 "commit": float(commit.detach()), "disc_loss": d_value, "grad_norm": norm}
 
-    run_loop(name="adapt", total_steps=total, step_fn=step_fn,
-             get_state=lambda: {"source": source_vq.state_dict(), "disc": disc.state_dict(),
-                                "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict()},
-             set_state=lambda s: (source_vq.load_state_dict(s["source"]), disc.load_state_dict(s["disc"]),
-                                  opt_g.load_state_dict(s["opt_g"]), opt_d.load_state_dict(s["opt_d"])),
-             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
-             log_fn=lambda values, step: log_fn({f"adapt.{k}": v for k, v in values.items()}, step))
+    with distributed.on_device(source_vq, disc, target_vq):
+        run_loop(name="adapt", total_steps=total, step_fn=step_fn,
+                 get_state=lambda: {"source": source_vq.state_dict(), "disc": disc.state_dict(),
+                                    "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict()},
+                 set_state=lambda s: (source_vq.load_state_dict(s["source"]), disc.load_state_dict(s["disc"]),
+                                      opt_g.load_state_dict(s["opt_g"]), opt_d.load_state_dict(s["opt_d"])),
+                 checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
+                 log_fn=lambda values, step: log_fn({f"adapt.{k}": v for k, v in values.items()}, step))
     return source_vq.eval(), disc.eval()
 
 

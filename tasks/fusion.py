@@ -47,6 +47,7 @@ from models.fusion import AttFuse, EarlyFusion, LateFusion, NoFusion, V2XViT, me
 from models.pointpillars import PointPillars, pillarize
 from tasks.fusion_data import FusionDataset, FusionSample, boxes_in_range
 from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch, seed_everything
+from typ import distributed
 from typ.boxes_bev import nms_bev
 from typ.config import FusionConfig, as_dict
 from typ.errors import TypError
@@ -158,6 +159,10 @@ class Batch:
     transforms: torch.Tensor          # (B, L, 4, 4) float64 agent->ego
     time_delay: torch.Tensor          # (B, L) long, frames
 
+    def to(self, device: torch.device) -> "Batch":
+        return Batch(self.method, self.indices, {k: v.to(device) for k, v in self.pillars.items()},
+                     self.agent_mask.to(device), self.transforms.to(device), self.time_delay.to(device))
+
     def run(self, model: nn.Module) -> dict[str, torch.Tensor]:
         b = len(self.indices)
         if self.method == "early":
@@ -237,8 +242,9 @@ def recalibrate_batchnorm(model: nn.Module, method: str, inputs: Inputs, batch_s
         m.reset_running_stats()
         m.momentum = None                       # cumulative moving average
     model.train()
-    for start in range(0, len(inputs), batch_size):
-        make_batch(method, inputs, range(start, min(start + batch_size, len(inputs)))).run(model)
+    with distributed.on_device(model) as dev:
+        for start in range(0, len(inputs), batch_size):
+            make_batch(method, inputs, range(start, min(start + batch_size, len(inputs)))).to(dev).run(model)
     for m, momentum in zip(norms, saved):
         m.momentum = momentum
     model.eval()
@@ -281,6 +287,8 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
         model.load_state_dict(init.model.state_dict())
     elif warm is not None:
         warm_start(model, warm)
+    if distributed.world_size() > 1 and distributed.device().type == "cuda":
+        model = nn.SyncBatchNorm.convert_sync_batchnorm(model)  # batch statistics over the global batch
     coder = box_coder(cfg, model)
     criterion = DetectionLoss()
     peak = cfg.lr if init is None and warm is None else cfg.finetune_lr
@@ -293,24 +301,28 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
         for group in opt.param_groups:
             group["lr"] = learning_rate(peak, step, steps)
         indices = batch_rng(cfg.seed, step).choice(len(inputs), size=batch_size, replace=False)
+        (indices,) = distributed.local_batch(indices)
         batch = make_batch(method, inputs, indices)
+        dev = distributed.device()
+        targets = {k: v.to(dev) for k, v in batch_targets(batch, inputs, coder).items()}
         model.train()
-        losses = criterion(batch.run(model), batch_targets(batch, inputs, coder))
+        losses = criterion(batch.to(dev).run(model), targets)
         opt.zero_grad(set_to_none=True)
         losses["total_loss"].backward()
-        norm = grad_norm(model.parameters())
         opt.step()
+        norm = grad_norm(model.parameters())
         return {"loss": float(losses["total_loss"].detach()), "cls_loss": float(losses["cls_loss"].detach()),
                 "reg_loss": float(losses["reg_loss"].detach()), "grad_norm": norm}
 
-    run_loop(name=f"fusion {name}", total_steps=steps, step_fn=step_fn,
-             get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-             set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
-             checkpoint_every=cfg.checkpoint_every,
-             log_fn=None if log_fn is None else
-             (lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step)
-              if step % LOG_EVERY == 0 or step == steps - 1 else None))
+    with distributed.on_device(model):
+        run_loop(name=f"fusion {name}", total_steps=steps, step_fn=step_fn,
+                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
+                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
+                 checkpoint_every=cfg.checkpoint_every,
+                 log_fn=None if log_fn is None else
+                 (lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step)
+                  if step % LOG_EVERY == 0 or step == steps - 1 else None))
     recalibrate_batchnorm(model, method, inputs, batch_size)
     return Trained(method, model, coder, key, steps)
 
@@ -381,11 +393,11 @@ def predict(trained: Trained, inputs: Inputs, cfg: FusionConfig, *, bits: int | 
     trained.model.eval()
     holder: list = [None]
     out = []
-    with compressed(trained, bits, holder) as model:
+    with compressed(trained, bits, holder) as model, distributed.on_device(trained.model) as dev:
         for start in range(0, len(inputs), batch_size):
             batch = make_batch(trained.method, inputs, range(start, min(start + batch_size, len(inputs))))
-            holder[0] = batch
-            head = batch.run(model)
+            holder[0] = batch.to(dev)
+            head = {k: v.cpu() for k, v in holder[0].run(model).items()}   # decoded on the CPU with ``batch``
             if trained.method == "late":
                 per = LateFusion.boxes_in_ego(head, trained.coder, agent_mask=batch.agent_mask,
                                               transforms=batch.transforms, score_threshold=cfg.score_threshold,
@@ -445,12 +457,13 @@ def bytes_per_message(trained: Trained, inputs: Inputs, cfg: FusionConfig, *, bi
 def late_boxes_per_agent(trained: Trained, inputs: Inputs, cfg: FusionConfig) -> float:
     """Mean boxes (score > threshold) a cooperating agent sends in late fusion."""
     counts = []
-    for start in range(0, len(inputs), 4):
-        batch = make_batch("late", inputs, range(start, min(start + 4, len(inputs))))
-        per = trained.coder.decode_predictions(batch.run(trained.model), score_threshold=cfg.score_threshold,
-                                               max_boxes=cfg.max_boxes)
-        slots = batch.agent_mask.nonzero()[:, 1].tolist()
-        counts += [len(boxes) for slot, (boxes, _) in zip(slots, per) if slot > 0]
+    with distributed.on_device(trained.model) as dev:
+        for start in range(0, len(inputs), 4):
+            batch = make_batch("late", inputs, range(start, min(start + 4, len(inputs))))
+            head = {k: v.cpu() for k, v in batch.to(dev).run(trained.model).items()}
+            per = trained.coder.decode_predictions(head, score_threshold=cfg.score_threshold, max_boxes=cfg.max_boxes)
+            slots = batch.agent_mask.nonzero()[:, 1].tolist()
+            counts += [len(boxes) for slot, (boxes, _) in zip(slots, per) if slot > 0]
     return float(np.mean(counts)) if counts else 0.0
 
 

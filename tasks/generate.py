@@ -25,6 +25,7 @@ import torch
 from models.postprocess import postprocess
 from tasks import stage1
 from tasks.stage2 import adapter_features
+from typ import distributed
 from typ.config import GenerateConfig, GenerateSet, Stage1Config, as_dict
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
@@ -180,14 +181,17 @@ def generate_occupancy(x_e: np.ndarray, y_r: np.ndarray, models: Models, seed: i
     x_e: (N, C, H, W) x_e' grids, y_r: (N, 1, H, W) box maps. ``models.adapter`` None samples
     stage 1 alone, P(x_r | y_r).
     """
-    x_e = torch.from_numpy(np.asarray(x_e, dtype=np.float32))
-    y_r = torch.from_numpy(np.asarray(y_r, dtype=np.float32))
-    features = (None if models.adapter is None else
-                adapter_features(models.adapter, models.ldm, models.x_vq.encode_pre_quant(x_e)))
-    logits = stage1.sample_logits(models.ldm, models.x_vq, models.y_vq.encode_pre_quant(y_r), cfg=models.sampling,
-                                  generator=torch.Generator().manual_seed(seed), adapter_features=features)
+    with distributed.on_device(models.x_vq, models.y_vq, models.ldm, models.adapter) as dev:
+        x_e = torch.from_numpy(np.asarray(x_e, dtype=np.float32)).to(dev)
+        y_r = torch.from_numpy(np.asarray(y_r, dtype=np.float32)).to(dev)
+        features = (None if models.adapter is None else
+                    adapter_features(models.adapter, models.ldm, models.x_vq.encode_pre_quant(x_e)))
+        # the generators stay on the CPU: the same seed draws the same noise on every device
+        logits = stage1.sample_logits(models.ldm, models.x_vq, models.y_vq.encode_pre_quant(y_r),
+                                      cfg=models.sampling, generator=torch.Generator().manual_seed(seed),
+                                      adapter_features=features)
     t = models.thresholds
-    return postprocess(logits, low=t["low"], high=t["high"], noise_std=t["noise_std"],
+    return postprocess(logits.cpu(), low=t["low"], high=t["high"], noise_std=t["noise_std"],
                        generator=torch.Generator().manual_seed(seed)).numpy()
 
 

@@ -25,6 +25,7 @@ from models.schedules import alphas_cumprod, betas
 from models.vqvae import BEVVQVAE
 from tasks.training import batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
+from typ import distributed
 from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj, write_json
@@ -89,19 +90,21 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, out: 
 
     def step_fn(step: int) -> dict[str, float]:
         index, t, eps, z_t = noised_batch(batch_rng(cfg.seed, step), z0, abar, cfg.batch_size)
+        t, eps, z_t, cond_t = distributed.local_batch(t, eps, z_t, c[index])
         model.train()
-        loss = F.mse_loss(model(z_t, t, c[index]), eps)
+        loss = F.mse_loss(model(z_t, t, cond_t), eps)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        norm = grad_norm(model.parameters())
         opt.step()
+        norm = grad_norm(model.parameters())
         return {"loss": float(loss.detach()), "grad_norm": norm}
 
-    run_loop(name="stage1", total_steps=total, step_fn=step_fn,
-             get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-             set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
-             log_fn=lambda values, step: log_fn({f"stage1.{k}": v for k, v in values.items()}, step))
+    with distributed.on_device(model):
+        run_loop(name="stage1", total_steps=total, step_fn=step_fn,
+                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
+                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
+                 log_fn=lambda values, step: log_fn({f"stage1.{k}": v for k, v in values.items()}, step))
     return model.eval()
 
 
@@ -117,7 +120,8 @@ def sample_logits(model: LatentDiffusion, x_vq: BEVVQVAE, cond: torch.Tensor, *,
     c = model.normalize_cond(cond)
     z = sample(model, scheduler, shape=(cond.shape[0], model.config["latent_channels"], *cond.shape[2:]),
                num_steps=num_steps or cfg.sample_steps, generator=generator, cond=c,
-               adapter_features=adapter_features, eta=cfg.eta if (sampler or cfg.sampler) == "ddim" else 0.0)
+               adapter_features=adapter_features, eta=cfg.eta if (sampler or cfg.sampler) == "ddim" else 0.0,
+               device=cond.device)
     return x_vq.decode_latents(model.denormalize(z))
 
 

@@ -23,6 +23,7 @@ from models.vqvae import BEVVQVAE
 from tasks.stage1 import noised_batch
 from tasks.training import (batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything,
                             steps_for)
+from typ import distributed
 from typ.config import Stage2Config, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj
@@ -81,19 +82,21 @@ def fit_adapter(adapter: T2IAdapter, ldm: LatentDiffusion, schedule: str, train_
 
     def step_fn(step: int) -> dict[str, float]:
         index, t, eps, z_t = noised_batch(batch_rng(seed, step), z0, abar, batch_size)
+        t, eps, z_t, cond, ego = distributed.local_batch(t, eps, z_t, c[index], ce[index])
         adapter.train()
-        loss = F.mse_loss(ldm(z_t, t, c[index], list(adapter(ce[index]))), eps)
+        loss = F.mse_loss(ldm(z_t, t, cond, list(adapter(ego))), eps)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        norm = grad_norm(adapter.parameters())
         opt.step()
+        norm = grad_norm(adapter.parameters())
         return {"loss": float(loss.detach()), "grad_norm": norm}
 
-    run_loop(name=name, total_steps=total, step_fn=step_fn,
-             get_state=lambda: {"adapter": adapter.state_dict(), "opt": opt.state_dict()},
-             set_state=lambda s: (adapter.load_state_dict(s["adapter"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_dir, checkpoint_every=checkpoint_every,
-             log_fn=lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step))
+    with distributed.on_device(adapter, ldm):
+        run_loop(name=name, total_steps=total, step_fn=step_fn,
+                 get_state=lambda: {"adapter": adapter.state_dict(), "opt": opt.state_dict()},
+                 set_state=lambda s: (adapter.load_state_dict(s["adapter"]), opt.load_state_dict(s["opt"])),
+                 checkpoint_dir=ckpt_dir, checkpoint_every=checkpoint_every,
+                 log_fn=lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step))
     return adapter.eval()
 
 

@@ -146,6 +146,8 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
 
 
 def grad_norm(parameters) -> float:
+    """L2 norm of the gradients. Read after ``optimizer.step()``: under torchrun the step's
+    pre-hook has then replaced them by their mean over ranks, the gradient actually applied."""
     norms = [p.grad.detach().norm() for p in parameters if p.grad is not None]
     return float(torch.linalg.vector_norm(torch.stack(norms))) if norms else 0.0
 

@@ -16,6 +16,7 @@ import torch
 from models.vqvae import BEVVQVAE
 from tasks.training import batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
+from typ import distributed
 from typ.config import AutoencoderConfig, VQVAEStageConfig, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj, write_json
@@ -59,19 +60,21 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
         rng = batch_rng(cfg.seed, step)
         index = rng.choice(len(views), size=cfg.batch_size, replace=len(views) < cfg.batch_size)
         flips = rng.random(cfg.batch_size) < 0.5
+        index, flips = distributed.local_batch(index, flips)  # only this rank's views are read
         model.train()
-        loss, _, parts = model.loss(_inputs(views, kind, index, flips), gamma=ae.gamma)
+        loss, _, parts = model.loss(_inputs(views, kind, index, flips).to(distributed.device()), gamma=ae.gamma)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        parts["grad_norm"] = grad_norm(model.parameters())
         opt.step()
+        parts["grad_norm"] = grad_norm(model.parameters())
         return parts
 
-    run_loop(name=f"vqvae-{kind}", total_steps=total, step_fn=step_fn,
-             get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-             set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
-             checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
-             log_fn=lambda values, step: log_fn({f"{kind}.{k}": v for k, v in values.items()}, step))
+    with distributed.on_device(model):
+        run_loop(name=f"vqvae-{kind}", total_steps=total, step_fn=step_fn,
+                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
+                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
+                 log_fn=lambda values, step: log_fn({f"{kind}.{k}": v for k, v in values.items()}, step))
     save_model(model, out / kind)
     return model
 

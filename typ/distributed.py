@@ -15,10 +15,17 @@ optimizer covers them all without changing the stages.
 
 Only rank 0 writes checkpoints, outputs and MLflow runs (:func:`is_main`). Outside torchrun
 (``WORLD_SIZE`` unset or 1) everything here is a no-op apart from device and autocast.
+
+Devices: a stage's data stays on the CPU (it is small next to the models and drawn with numpy
+generators, so batches do not depend on the device). A training step takes its rows with
+:func:`local_batch`, which moves them to the runtime device; the modules a loop or a sampler
+uses are there while it runs (:func:`on_device`) and go back where they were afterwards, so
+evaluation code around the loops works on whatever it is handed.
 """
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 from dataclasses import dataclass, replace
 from typing import Iterator, Sequence
@@ -138,6 +145,44 @@ def shard(index: Sequence[int] | np.ndarray | torch.Tensor):
     local = index[_runtime.rank::world]
     _shard_weight = len(local) * world / n
     return local
+
+
+def local_batch(*rows):
+    """This rank's rows of one global batch: every item (same length) cut at the same positions
+    (:func:`shard`); tensors are moved to the runtime device, numpy arrays stay numpy."""
+    n = len(rows[0])
+    if any(len(r) != n for r in rows):
+        raise ValueError(f"local_batch: items of one batch need one length, got {[len(r) for r in rows]}")
+    sel = shard(np.arange(n)) if _runtime.world_size > 1 else None
+    out = []
+    for r in rows:
+        if isinstance(r, torch.Tensor):
+            out.append((r if sel is None else r[torch.from_numpy(sel).to(r.device)]).to(_runtime.device))
+        else:
+            out.append(r if sel is None else np.asarray(r)[sel])
+    return tuple(out)
+
+
+def module_device(module: torch.nn.Module) -> torch.device:
+    """Where ``module``'s parameters (else buffers) are; the CPU for a module with neither."""
+    for t in itertools.chain(module.parameters(), module.buffers()):
+        return t.device
+    return torch.device("cpu")
+
+
+@contextlib.contextmanager
+def on_device(*modules: torch.nn.Module | None) -> Iterator[torch.device]:
+    """While open, ``modules`` (None skipped) are on the runtime device; then each goes back to
+    the device it was on. Yields the runtime device."""
+    present = [m for m in modules if m is not None]
+    before = [module_device(m) for m in present]
+    for m in present:
+        m.to(_runtime.device)
+    try:
+        yield _runtime.device
+    finally:
+        for m, dev in zip(present, before):
+            m.to(dev)
 
 
 def average_gradients(parameters) -> None:
