@@ -53,6 +53,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/sampling.py --out reports
 	$(BIN)/python bench/two_stage.py --out reports
 	$(BIN)/python bench/pipeline.py --out reports
+	$(BIN)/python bench/ddp.py --out reports
 	$(BIN)/python bench/report.py --out reports
 
 # the scheduled Prefect deployments on a local server (http://127.0.0.1:4200), or on the
