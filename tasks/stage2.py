@@ -77,7 +77,7 @@ def fit_adapter(adapter: T2IAdapter, ldm: LatentDiffusion, schedule: str, train_
     total = steps_for(epochs, len(z0), batch_size)
     key = hash_obj({"cfg": key_extra, "data": float(x_r.double().sum() + x_e.double().sum() + y_r.double().sum()),
                     "n": len(x_r), "ldm": float(sum(p.double().sum() for p in ldm.parameters())),
-                    "init": float(sum(p.double().sum() for p in adapter.parameters()))})[:16]
+                    "init": float(sum(p.detach().double().sum() for p in adapter.parameters()))})[:16]
     ckpt_dir = run_checkpoint_dir(out / "checkpoints", key)
 
     def step_fn(step: int) -> dict[str, float]:

@@ -74,6 +74,7 @@ def test_bad_input_is_named_and_touches_nothing(case: Case, tmp_path, capsys, re
     else:
         code, message = run_stage_process(probe.process, probe.cwd, stage_env(request.config, tmp_path_factory))
         assert code == 2, message[-3000:]
+        assert "Traceback" not in message, message[-3000:]   # bad input: no stack, Prefect's log included
         message = message.strip().splitlines()[-1]  # the CLI's own last word, after Prefect's log
         assert message.startswith("typ: error: "), message
 

@@ -34,6 +34,24 @@ def _setup_env(root: Path) -> None:
         os.environ["PREFECT_HOME"] = str(Path(os.environ["PREFECT_HOME"]) / f"rank-{rank}")
 
 
+class _BadInputWithoutTraceback(logging.Filter):
+    """Prefect's engine logs a failed flow or task with its traceback. For bad input (TypError)
+    the message is the whole story, and the CLI prints it as its last line: drop the traceback."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and isinstance(record.exc_info[1], TypError):
+            record.exc_info, record.exc_text = None, None
+        return True
+
+
+def quiet_bad_input_tracebacks() -> None:
+    """Install :class:`_BadInputWithoutTraceback` on Prefect's run loggers (once)."""
+    for name in ("prefect.flow_runs", "prefect.task_runs"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _BadInputWithoutTraceback) for f in logger.filters):
+            logger.addFilter(_BadInputWithoutTraceback())
+
+
 def _cmd_run(args) -> int:
     root = Path(args.root)
     if args.stage != "all" and args.stage not in STAGES:
@@ -47,6 +65,7 @@ def _cmd_run(args) -> int:
     distributed.setup(cfg.runtime.device, cfg.runtime.precision, where=cfg.source)
     from flows.pipeline import pipeline_flow, run_stage
 
+    quiet_bad_input_tracebacks()
     try:
         if args.stage == "all":
             pipeline_flow(params=args.params, root=str(root), task_runner=args.runner, address=args.address)
