@@ -6,7 +6,8 @@ Each bench writes its own page (method, notes, tables, plot). This page keeps, p
 file-name order, its title (linked to the page, and its plot when there is one), its tables
 with the heading just above each, and its one-line verdicts (``- **...``); the method and
 notes stay on the bench's own page. The header names the machine this script runs on:
-``make bench`` runs it right after the benches, in the same environment.
+``make bench`` runs it right after the benches, in the same environment. The pages, plots
+and raw JSON then go to MLflow as the artifacts of one run named ``bench`` (``--no-mlflow``: not).
 """
 from __future__ import annotations
 
@@ -90,13 +91,31 @@ def aggregate(folder: Path, info: dict) -> str:
     return "\n".join(lines)
 
 
+def log_to_mlflow(folder: Path, *, root: Path = Path("."), params: str = "params.yaml") -> str:
+    """One MLflow run ``bench`` (the project's experiment and store, git commit tagged) holding
+    ``bench.md`` and every bench page, plot and raw JSON of ``folder`` as artifacts; its run id."""
+    from typ.config import load_config
+    from typ.tracking import stage_run
+
+    cfg = load_config(root / params)
+    files = sorted(p for p in folder.glob("bench*") if p.suffix in (".md", ".png", ".json"))
+    with stage_run("bench", cfg, root=root) as run:
+        for path in files:
+            run.artifact(path, "bench")
+        run.metrics({"bench_pages": len([p for p in files if p.name.startswith("bench_") and p.suffix == ".md"])})
+    return run.run_id
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="reports", help="folder holding the bench_*.md pages; bench.md goes there")
+    ap.add_argument("--no-mlflow", action="store_true", help="do not log the pages as an MLflow run")
     args = ap.parse_args(argv)
     out = Path(args.out)
     write_text(out / "bench.md", aggregate(out, machine()))
     print(out / "bench.md")
+    if not args.no_mlflow:
+        print(f"MLflow run {log_to_mlflow(out)}: bench pages as artifacts")
     return 0
 
 

@@ -194,3 +194,21 @@ def test_cli_rejects_unknown_sections():
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "pipeline.py"), "--only", "pipeline,speed"],
                           capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2 and "--only: expected sections of" in proc.stderr
+
+
+def test_bench_pages_go_to_mlflow_as_one_run(tmp_path, monkeypatch):
+    from mlflow.tracking import MlflowClient
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlruns.db'}")
+    (tmp_path / "params.yaml").write_text("profile: tiny\n")
+    pages = tmp_path / "reports"
+    pages.mkdir()
+    for name in ("bench.md", "bench_a.md", "bench_a.png", "bench_a.json", "fusion.md", "bench_notes.txt"):
+        (pages / name).write_text(name)
+    run_id = report.log_to_mlflow(pages, root=tmp_path)
+    client = MlflowClient()
+    run = client.get_run(run_id)
+    assert run.info.run_name == "bench" and run.data.tags["mlflow.source.git.commit"]
+    assert run.data.metrics["bench_pages"] == 1
+    logged = sorted(Path(a.path).name for a in client.list_artifacts(run_id, "bench"))
+    assert logged == ["bench.md", "bench_a.json", "bench_a.md", "bench_a.png"]   # bench pages only
