@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
@@ -39,6 +40,8 @@ def adapt_flow(params: str = "params.yaml", root: str = ".") -> dict:
         metrics["before"] = evaluate(target_vq, target_vq, src_eval, tgt_eval, disc, n=block.eval_views)
         metrics["after"] = evaluate(source_vq, target_vq, src_eval, tgt_eval, disc, n=block.eval_views)
         stage.save(source_vq, disc, out)
+        run.log_model("adapt-source-vq", source_vq, src_train.batch(np.arange(min(2, len(src_train))))[0],
+                      output="logits")
         path = write_metrics(STAGE, metrics, root_path)
         run.metrics(numeric_leaves(metrics))
         run.artifact(path)

@@ -39,4 +39,7 @@ def fusion_flow(params: str = "params.yaml", root: str = ".") -> dict:
         run.metrics(numeric_leaves(metrics))
         for p in [path, out / "results.json", *reports]:
             run.artifact(p)
+        for method in block.methods:  # Table 2's oracle detectors, servable from MLflow
+            run.log_model(f"fusion-{method}", stage.ServedDetector(bench.oracle(method)).eval(),
+                          stage.ServedDetector.example(method, bench.test))
     return metrics

@@ -93,6 +93,7 @@ def selftrain_flow(params: str = "params.yaml", root: str = ".") -> dict:
                     block, v, base, ldm, schedule, timesteps, stage.concat(*parts), out=out, log_fn=run.metrics)
         metrics["seconds_training"] = round(timer.seconds, 3)
         save_adapter(adapters[chosen.name], cfg.stage2.adapter_res_blocks, out)
+        run.log_model("selftrain-adapter", adapters[chosen.name], ldm.normalize(source[chosen.discriminator][2][:2]))
 
         # held-out target scenes: only the ego's cloud is used; the reference view is the truth
         pairs = list(iter_pairs(sim / block.target_domain / block.target_eval_split, grid, ego_only=True))

@@ -63,6 +63,7 @@ def stage2_flow(params: str = "params.yaml", root: str = ".") -> dict:
         metrics["typ"] = score(generated, truth, grid)
         metrics["typ"]["seconds_per_sample"] = round(timer.seconds / max(len(pairs), 1), 3)
         stage.save(adapter, block, out)
+        run.log_model("stage2-adapter", adapter, ldm.normalize(x_e[:2]))  # F_AD(x^f_e') -> one map per UNet level
         path = write_metrics(STAGE, metrics, root_path)
         run.metrics(numeric_leaves(metrics))
         run.artifact(path)

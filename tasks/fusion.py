@@ -327,6 +327,29 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
     return Trained(method, model, coder, key, steps)
 
 
+class ServedDetector(nn.Module):
+    """A trained method called with a batch's arrays by name (``make_batch``'s layout), returning
+    its head dict: what ``StageRun.log_model`` logs, so the MLflow model runs without typ's Batch."""
+
+    def __init__(self, trained: Trained):
+        super().__init__()
+        self.method, self.model = trained.method, trained.model
+
+    def forward(self, voxel_features, voxel_coords, voxel_num_points, agent_mask, transforms, time_delay):
+        pillars = {"voxel_features": voxel_features.float(), "voxel_coords": voxel_coords.long(),
+                   "voxel_num_points": voxel_num_points.long()}
+        batch = Batch(self.method, list(range(agent_mask.shape[0])), pillars, agent_mask.bool(),
+                      transforms.double(), time_delay.long())
+        return batch.run(self.model)
+
+    @staticmethod
+    def example(method: str, inputs: Inputs, n: int = 2) -> dict[str, torch.Tensor]:
+        """The named arrays of the first ``n`` samples of ``inputs``, as ``forward`` takes them."""
+        batch = make_batch(method, inputs, range(min(n, len(inputs))))
+        return {**batch.pillars, "agent_mask": batch.agent_mask, "transforms": batch.transforms,
+                "time_delay": batch.time_delay}
+
+
 def save(trained: Trained, path: Path) -> None:
     save_torch(path, {"method": trained.method, "key": trained.key, "steps": trained.steps,
                       "state_dict": trained.model.state_dict()})

@@ -290,6 +290,18 @@ def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
     assert sim.data.tags["mlflow.source.git.commit"].startswith(commit)
     assert sim.data.metrics["simulated"] == 7
     assert by_stage["voxelize"].data.metrics["views"] == 28
+    # every trained network is an MLflow model of the stage run that trained it
+    logged, stage_runs = {}, {}
+    for m in client.search_logged_models(experiment_ids=[exp.experiment_id]):
+        logged.setdefault(m.name, set()).add(m.source_run_id)
+    for r in runs:
+        stage_runs.setdefault(r.data.tags["typ.stage"], set()).add(r.info.run_id)
+    owners = {"vqvae-x": "vqvae", "vqvae-y": "vqvae", "stage1-ldm": "stage1", "adapt-source-vq": "adapt",
+              "stage2-adapter": "stage2", "selftrain-adapter": "selftrain",
+              **{f"fusion-{m}": "fusion" for m in ("none", "early", "late", "attfuse", "v2xvit")}}
+    assert set(owners) <= set(logged), set(owners) - set(logged)
+    for name, stage in owners.items():
+        assert logged[name] <= stage_runs[stage], name
 
 
 def test_second_repro_does_nothing(project):

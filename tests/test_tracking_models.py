@@ -76,3 +76,49 @@ def test_ranks_other_than_zero_log_nothing(store, monkeypatch):
         assert isinstance(run, NullRun)
         run.metrics({"loss": 1.0})
     assert not (tmp_path / "mlruns.db").exists()
+
+
+def test_adapter_and_fusion_detector_serve_their_named_outputs(store, one_torch_thread):
+    """Multi-output networks: the T2I-Adapter's feature list and a fusion detector's head dict."""
+    from diffusers import T2IAdapter
+
+    from tasks import fusion
+    from tasks.fusion_data import FusionDataset
+    from typ.formats.opv2v import write_scene
+    from typ.sim import simulate_scenario
+
+    tmp_path, _ = store
+    torch.manual_seed(0)
+    adapter = T2IAdapter(in_channels=3, channels=[8, 8], num_res_blocks=1, downscale_factor=1,
+                         adapter_type="full_adapter").eval()
+    x = torch.randn(2, 3, 8, 8)
+    cfg = config_from_dict({"profile": "tiny", "fusion": {
+        "detector": {"lidar_range": [-51.2, -25.6, -3.0, 51.2, 25.6, 1.0], "voxel_size": 0.8,
+                     "max_points_per_pillar": 8, "max_pillars": 4000, "pillar_channels": 8,
+                     "num_filters": [8, 16], "num_upsample_filters": [8, 8]}}})
+    for scene in simulate_scenario(domain="real_cav", seed=3, n_frames=2, n_agents=2, scenario="real_cav_0003"):
+        write_scene(scene, tmp_path / "scenes")
+    data = FusionDataset(tmp_path / "scenes", lidar_range=cfg.fusion.detector.lidar_range)
+    inputs = fusion.Inputs(list(data), cfg.fusion)
+    trained = fusion.Trained("late", fusion.build_model("late", cfg.fusion).eval(), None, "k", 0)
+    served, example = fusion.ServedDetector(trained).eval(), fusion.ServedDetector.example("late", inputs)
+    with stage_run("fusion", cfg, root=tmp_path) as run:
+        adapter_uri = run.log_model("stage2-adapter", adapter, x)
+        detector_uri = run.log_model("fusion-late", served, example)
+
+    got = mlflow.pyfunc.load_model(adapter_uri).predict({"input": x.numpy()})
+    with torch.no_grad():
+        expected = adapter(x)
+    assert sorted(got) == [f"level_{i}" for i in range(len(expected))]
+    for i, e in enumerate(expected):
+        np.testing.assert_allclose(got[f"level_{i}"], e.numpy(), rtol=1e-5, atol=1e-6)
+
+    model = mlflow.pyfunc.load_model(detector_uri)
+    assert sorted(model.metadata.signature.inputs.input_names()) == sorted(example)
+    got = model.predict({k: v.numpy() for k, v in example.items()})
+    with torch.no_grad():
+        expected = fusion.make_batch("late", inputs, range(2)).run(trained.model)
+    assert set(got) == set(expected)
+    for k, e in expected.items():   # one row per present agent: 2 frames x 2 agents
+        assert got[k].shape == tuple(e.shape) and e.shape[0] == 4
+        np.testing.assert_allclose(got[k], e.numpy(), rtol=1e-5, atol=1e-6)
