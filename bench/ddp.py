@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import statistics
 import sys
 import tempfile
@@ -31,6 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable from a checkout
 
+from flows.server import free_port  # noqa: E402
 from typ.io import atomic_path, write_text  # noqa: E402
 
 SETUPS = (("1 process x 1 thread", 1, 1, True), ("1 process x all cores", 1, 0, True),
@@ -72,12 +72,6 @@ def _worker(rank: int, world: int, port: int, threads: int, sharded: bool, steps
         distributed.teardown()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def measure(steps: int, batch: int) -> list[dict]:
     import torch
     import torch.multiprocessing as mp
@@ -86,7 +80,7 @@ def measure(steps: int, batch: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         for name, world, threads, sharded in SETUPS:
             result = str(Path(tmp) / f"{len(rows)}.pt")
-            mp.spawn(_worker, args=(world, _free_port(), threads, sharded, steps, batch, result),
+            mp.spawn(_worker, args=(world, free_port(), threads, sharded, steps, batch, result),
                      nprocs=world, join=True)
             rows.append({"setup": name, **torch.load(result)})
     return compare(rows)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -28,6 +27,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+
+from flows.server import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 TMP_PREFIX = ".tmp-"
@@ -57,9 +58,7 @@ class PrefectServer:
     """``prefect server start`` (no UI) in its own process group, state under ``home``."""
 
     def __init__(self, home: Path):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
+        port = free_port()
         self.api_url = f"http://127.0.0.1:{port}/api"
         home.mkdir(parents=True, exist_ok=True)
         env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ import torch
 import torch.multiprocessing as mp
 import torch.nn.functional as F
 
+from flows.server import free_port
 from models.discriminator import LatentDiscriminator
 from models.ldm import LatentDiffusion
 from models.vqvae import BEVVQVAE
@@ -124,17 +124,11 @@ def _rank_main(rank: int, world: int, port: int, out: str) -> None:
         distributed.teardown()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_two_gloo_ranks_match_one_process(tmp_path, one_torch_thread):
     ddp = tmp_path / "ddp"
     for case in (*BATCHES, *STAGES):
         (ddp / case).mkdir(parents=True)
-    mp.spawn(_rank_main, args=(2, _free_port(), str(ddp)), nprocs=2, join=True)
+    mp.spawn(_rank_main, args=(2, free_port(), str(ddp)), nprocs=2, join=True)
     for case, batch_size in BATCHES.items():
         single, _ = _train(tmp_path / "single" / case, batch_size)
         for rank in (0, 1):
