@@ -302,13 +302,17 @@ def plot_curves(stage: str, data: StageData, labels: list[str], path: Path) -> P
     return _save(fig, path, f"{stage}: training curves (faint: per step, bold: smoothed)")
 
 
+def _family_panels(finals: list[dict[str, float]], test, at_least: int):
+    """Metric families (see :func:`_families`) with at least ``at_least`` members: the first
+    MAX_PANELS as sorted ``((pattern, position), family)`` items, and every metric they hold."""
+    fams = {k: v for k, v in _families(sorted(set().union(*finals)), test).items() if len(v) >= at_least}
+    return sorted(fams.items())[:MAX_PANELS], {n for fam in fams.values() for n in fam.values()}
+
+
 def plot_sweeps(stage: str, finals: list[dict[str, float]], labels: list[str], path: Path) -> tuple[Path | None, set]:
-    names = sorted(set().union(*finals))
-    fams = {k: v for k, v in _families(names, lambda s: _number(s) is not None).items() if len(v) >= 3}
-    used = {n for fam in fams.values() for n in fam.values()}
-    if not fams:
+    items, used = _family_panels(finals, lambda s: _number(s) is not None, 3)
+    if not items:
         return None, used
-    items = sorted(fams.items())[:MAX_PANELS]
     colors = _colors(len(labels))
     fig, axes = _grid(len(items))
     for ax, ((pattern, pos), fam) in zip(axes, items):
@@ -326,12 +330,9 @@ def plot_sweeps(stage: str, finals: list[dict[str, float]], labels: list[str], p
 
 
 def plot_bands(stage: str, finals: list[dict[str, float]], labels: list[str], path: Path) -> tuple[Path | None, set]:
-    names = sorted(set().union(*finals))
-    fams = {k: v for k, v in _families(names, _is_band).items() if len(v) >= 2}
-    used = {n for fam in fams.values() for n in fam.values()}
-    if not fams:
+    items, used = _family_panels(finals, _is_band, 2)
+    if not items:
         return None, used
-    items = sorted(fams.items())[:MAX_PANELS]
     colors = _colors(len(labels))
     fig, axes = _grid(len(items))
     width = 0.8 / len(labels)
