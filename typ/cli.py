@@ -18,6 +18,8 @@ from typ.errors import TypError
 from typ.config import Config
 
 STAGES = Config.STAGES
+#: loggers of typ's own code (typ.*, tasks.*), included in Prefect's logging by :func:`_setup_env`
+STAGE_LOGGERS = ("typ", "tasks")
 
 
 def _setup_env(root: Path) -> None:
@@ -29,6 +31,11 @@ def _setup_env(root: Path) -> None:
     # the ephemeral API server's 20 s default start-up limit is missed on a loaded 2-core machine
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
     os.environ.setdefault("DVC_NO_ANALYTICS", "1")
+    # the stage code's loggers go to the Prefect API with the flow run's (its UI shows them);
+    # outside a run they stay local without Prefect's "no flow run" warning
+    extra = [n for n in os.environ.get("PREFECT_LOGGING_EXTRA_LOGGERS", "").split(",") if n.strip()]
+    os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"] = ",".join(extra + [n for n in STAGE_LOGGERS if n not in extra])
+    os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
     rank = int(os.environ.get("RANK", "0"))
     if rank > 0:  # torchrun: each rank's temporary Prefect server keeps its own sqlite file
         os.environ["PREFECT_HOME"] = str(Path(os.environ["PREFECT_HOME"]) / f"rank-{rank}")
@@ -146,6 +153,32 @@ def _cmd_generate(args) -> int:
     return 0
 
 
+def _cmd_show(args) -> int:
+    from tasks.show import ShowOptions, show
+    from typ import viz
+
+    root = Path(args.root)
+    params = root / args.params
+    if params.is_file():
+        from tasks.voxelize import to_grid
+        from typ.config import load_config
+
+        grid = to_grid(load_config(params).voxelize.grid)
+    else:
+        from typ.voxel import TINY_GRID as grid
+
+        print(f"no {params}: scoring on the tiny profile's grid", file=sys.stderr)
+    half = args.range
+    window = viz.Window((-half, half), (-half, half), args.resolution) if half else \
+        viz.Window(grid.x_range, grid.y_range, args.resolution)
+    opts = ShowOptions(grid=grid, window=window, color=args.color, sensor=args.sensor,
+                       sim_root=Path(args.sim) if args.sim else None, resim=not args.no_resim)
+    written = show(Path(args.path), Path(args.out), opts, args.timestamp)
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
 def _numbers(text: str, flag: str, counts: tuple[int, ...]) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -175,9 +208,10 @@ def _cmd_edit(args) -> int:
     _setup_env(root)
     from flows.generate import edit_scenario
 
-    path = edit_scenario(Path(args.scenario), args.timestamp, edit, Path(args.out), root=root, params=args.params,
-                         agent=args.agent, seed=args.seed)
+    path, render = edit_scenario(Path(args.scenario), args.timestamp, edit, Path(args.out), root=root,
+                                 params=args.params, agent=args.agent, seed=args.seed)
     print(f"wrote {path}")
+    print(f"wrote {render}")
     return 0
 
 
@@ -222,6 +256,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--references", type=int, default=None, help="reference views per frame (default: params)")
     p.add_argument("--rsu", type=int, default=None, help="roadside units per scenario (default: params)")
     p.set_defaults(fn=_cmd_generate)
+    p = sub.add_parser("show", help="PNGs of an OPV2V-layout scenario (simulated, generated or real) or a folder of "
+                                    "them: each agent from above, all agents side by side, range images, and for "
+                                    "generated agents the ego / x_e' / generated / true / re-simulated / error panels")
+    p.add_argument("path", help="a scenario folder (agent/timestamp.pcd|.yaml) or a folder of scenarios")
+    p.add_argument("--timestamp", default=None, help="the frame, e.g. 000000 (default: each scenario's first)")
+    p.add_argument("--out", required=True, help="folder the PNGs are written to")
+    p.add_argument("--color", choices=("height", "class"), default="height",
+                   help="colour points by height (default) or by their simulated class where known")
+    p.add_argument("--sensor", default=None, help="LiDAR preset for range images and re-simulation: source, target "
+                                                  "or real_cav (default: from the simulated scenario or set name)")
+    p.add_argument("--sim", default=None, help="root of the simulated scenarios holding true views (default: the "
+                                               "'sim' folder beside the generated root, e.g. data/sim)")
+    p.add_argument("--range", type=float, default=None, metavar="M",
+                   help="show [-M, M] metres around the sensor (default: the voxel grid's extent)")
+    p.add_argument("--resolution", type=float, default=0.2, metavar="M", help="metres per pixel (default 0.2)")
+    p.add_argument("--no-resim", action="store_true", help="skip the re-simulated view (0.5 s per generated agent)")
+    p.set_defaults(fn=_cmd_show)
     p = sub.add_parser("edit", help="regenerate one view with boxes added, removed or moved (TYP Fig. 5)")
     p.add_argument("scenario", help="an OPV2V-layout scenario folder")
     p.add_argument("--timestamp", required=True, help="the frame to edit, e.g. 000000")
