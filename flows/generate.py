@@ -10,7 +10,7 @@ from prefect import flow
 from flows.common import per_scene_stage
 from tasks import generate as stage
 from tasks import stage1
-from tasks.edit import edit_view
+from tasks.edit import edit_figure, edit_view
 from tasks.ingest import read_frames, write_single_agent
 from tasks.stage2 import load_adapter
 from tasks.voxelize import to_grid
@@ -20,6 +20,7 @@ from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
 from typ.io import atomic_path, hash_files
 from typ.store import list_scenes, store_grid, stored_grid
+from typ.viz import save_png
 from typ.voxel import Grid
 
 STAGE = "generate"
@@ -97,8 +98,10 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
 
 
 def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path, params: str,
-                  agent: str | None = None, seed: int = 0) -> Path:
-    """``typ edit``: a copy of ``scenario`` under ``out`` with one view regenerated after ``edit``."""
+                  agent: str | None = None, seed: int = 0) -> tuple[Path, Path]:
+    """``typ edit``: a copy of ``scenario`` under ``out`` with one view regenerated after ``edit``,
+    and beside it ``<scenario>_<timestamp>_<agent>_edit.png``, the view before and after.
+    Returns (the copy, the PNG)."""
     cfg = load_config(root / params)
     models, grid = load_models(root, cfg), model_grid(root, cfg)
     agents = list_agents(scenario)
@@ -111,4 +114,7 @@ def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path
     with atomic_path(target) as tmp:
         shutil.copytree(scenario, tmp, ignore=shutil.ignore_patterns("_*", ".*"))
         write_scene(dataclasses.replace(scene, scenario=tmp.name, agents={agent: result.view}), tmp)
-    return target
+    render = save_png(edit_figure(scene.agents[agent], result, grid,
+                                  title=f"typ edit: {scenario.name} {timestamp} agent {agent}"),
+                      out / f"{scenario.name}_{timestamp}_{agent}_edit.png")
+    return target, render

@@ -106,6 +106,25 @@ def edit_view(view: AgentView, edit: BoxEdit, models: Models, grid: Grid, seed: 
     return EditedView(out, footprint, x_e, y_r)
 
 
+def edit_figure(before: AgentView, result: EditedView, grid: Grid, *, title: str = ""):
+    """Before / after BEV renders of an edited view and the cells the edit changed.
+
+    Panels: the view as it was with its boxes, as edited with the edited boxes (the
+    regenerated footprint outlined by its cells in the change map), and the change of the
+    occupancy on ``grid``: unchanged, removed (only before), added (only after).
+    """
+    from typ import viz
+
+    old_occ, new_occ = voxelize(before.points, grid), voxelize(result.view.points, grid)
+    change = viz.error_panel(new_occ, old_occ, grid, boxes=result.view.boxes, title="change (after vs before)",
+                             labels=("unchanged", "removed", "added"))
+    panels = [viz.cloud_panel("before", before.points, grid=grid, boxes=before.boxes),
+              viz.cloud_panel("after", result.view.points, grid=grid, boxes=result.view.boxes,
+                              note=f"{len(result.view.points)} points, {int(result.footprint.sum())} cells regenerated"),
+              change]
+    return viz.panels_figure(panels, title=title, colorbar_z=grid.z_range)
+
+
 def _in_cells(points: np.ndarray, cells: np.ndarray, grid: Grid) -> np.ndarray:
     """(N,) bool: the point's BEV cell is in ``cells`` (points outside the grid: False)."""
     ij = np.floor((points[:, :2] - grid.lower[:2]) / grid.voxel_size[:2]).astype(np.int64)
