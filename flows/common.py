@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import shutil
 import time
 from pathlib import Path
@@ -125,6 +126,30 @@ def api_for_workers() -> Iterator[None]:
     server.start()
     with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
         yield
+
+
+def publish_markdown(markdown: str, *, key: str, description: str | None = None) -> str | None:
+    """Publish ``markdown`` (a stage's summary) as a Prefect markdown artifact of the current run.
+
+    The artifact shows in the Prefect UI under the flow run and, by ``key`` (lower-case letters,
+    digits and dashes; other characters become dashes), in the Artifacts page, where each run adds
+    a version. Outside a flow or task run (a task's plain function called directly, a test) there
+    is nothing to attach it to: it returns None and talks to no server.
+    """
+    from prefect.artifacts import create_markdown_artifact
+    from prefect.context import FlowRunContext, TaskRunContext
+
+    if FlowRunContext.get() is None and TaskRunContext.get() is None:
+        return None
+    return str(create_markdown_artifact(markdown=markdown, key=artifact_key(key), description=description))
+
+
+def artifact_key(name: str) -> str:
+    """A Prefect artifact key from a name: lower case, runs of other characters -> ``-``."""
+    key = re.sub(r"[^a-z0-9-]+", "-", name.lower()).strip("-")
+    if not key:
+        raise TypError("publish_markdown", "key", "a name with letters or digits", name)
+    return key
 
 
 def plain_task(fn: Callable, name: str):

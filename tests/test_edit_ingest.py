@@ -132,3 +132,29 @@ def test_edit_view_makes_occupancy_appear_and_disappear_in_the_edited_footprints
     assert np.array_equal(np.sort(kept, axis=0), np.sort(view.points[outside], axis=0))
     with pytest.raises(TypError, match="at least one"):
         edit_module.edit_view(view, BoxEdit(), models=None, grid=GRID, seed=0)
+
+
+def test_edit_figure_shows_before_after_and_the_changed_cells(monkeypatch):
+    import tasks.edit as edit_module
+    from typ import viz
+    from typ.voxel import voxelize
+
+    monkeypatch.setattr(edit_module, "generate_occupancy", _box_following_model)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-50, 50, (20000, 2)), np.full(20000, -2.7), np.zeros(20000)]
+    car = np.c_[rng.uniform(8.5, 11.5, (400, 1)), rng.uniform(-0.8, 0.8, (400, 1)), rng.uniform(-2.2, -1.0, (400, 1)),
+                np.zeros((400, 1))]
+    view = AgentView("1", np.concatenate([ground, car]).astype(np.float32), np.eye(4),
+                     np.array([[10.0, 0.0, -1.6, 4.0, 2.0, 1.5, 0.0]]), ("car",), np.array([5]))
+    result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=((-20.0, 15.0, 0.0),)), models=None, grid=GRID,
+                                   seed=0)
+    fig = edit_module.edit_figure(view, result, GRID, title="edit")
+    assert [ax.get_title() for ax in fig.axes if ax.get_title()] == ["before", "after", "change (after vs before)"]
+    counts = viz.error_counts(voxelize(result.view.points, GRID), voxelize(view.points, GRID))
+    legend = [t.get_text() for t in fig.axes[2].get_legend().get_texts()]
+    assert legend == [f"unchanged {counts['tp']}", f"removed {counts['miss']}", f"added {counts['fp']}"]
+    assert counts["fp"] > 0  # the added car's cells
+    # every changed cell lies in the regenerated footprint
+    change = viz.error_image(voxelize(result.view.points, GRID), voxelize(view.points, GRID))[::-1, ::-1]
+    changed = ~np.all(np.isclose(change, viz.TP_COLOUR) | np.isclose(change, viz.BACKGROUND), axis=2)
+    assert changed.any() and not (changed & ~result.footprint).any()

@@ -28,6 +28,11 @@ PARENT_ENV = "TYP_PARENT_RUN_ID"
 log = logging.getLogger(__name__)
 
 
+#: stages whose runs log system metrics (CPU, memory, disk, network; GPU with pynvml) every
+#: MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL seconds (MLflow's default: 10) from a thread; psutil
+#: is all it needs, and it logs to the run's own store, so it works offline
+TRAINING_STAGES = ("vqvae", "stage1", "adapt", "stage2", "selftrain", "fusion")
+
 #: environment DVC sets for a stage command during `dvc exp run` -> the MLflow tag it becomes
 DVC_EXP_TAGS = {"DVC_EXP_NAME": "dvc.exp_name", "DVC_EXP_BASELINE_REV": "dvc.exp_baseline_rev"}
 
@@ -90,7 +95,12 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["S
     parent = os.environ.get(PARENT_ENV)
     if parent and not nested:
         tags["mlflow.parentRunId"] = parent
-    with mlflow.start_run(experiment_id=exp_id, run_name=stage, tags=tags, nested=nested) as run:
+    # None leaves the other stages to MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING
+    system_metrics = True if stage in TRAINING_STAGES else None
+    if system_metrics:  # its start/stop INFO lines would be all a stage prints
+        logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
+    with mlflow.start_run(experiment_id=exp_id, run_name=stage, tags=tags, nested=nested,
+                          log_system_metrics=system_metrics) as run:
         mlflow.log_params({k: _short(v) for k, v in params.items()})
         mlflow.log_param("profile", cfg.profile)
         yield StageRun(mlflow, run.info.run_id)
@@ -126,6 +136,33 @@ class StageRun:
         elif path.exists():
             self._client.log_artifact(self.run_id, str(path), artifact_path=subdir)
 
+
+    def log_image(self, image, artifact_file: str) -> None:
+        """An image (H, W, 3|4) uint8 or float in [0, 1], or a PIL image, as ``artifact_file`` (.png)."""
+        self._client.log_image(self.run_id, _image(image), artifact_file=artifact_file)
+
+    def log_figure(self, fig, artifact_file: str) -> None:
+        """A matplotlib Figure (e.g. from :mod:`typ.viz`) as ``artifact_file`` (.png), at its own dpi."""
+        self._client.log_figure(self.run_id, fig, artifact_file, save_kwargs={"dpi": fig.dpi})
+
+    def log_table(self, rows, artifact_file: str) -> None:
+        """Per-sample scores as an MLflow table (``artifact_file`` .json), which the UI can sort and
+        filter: ``rows`` a list of {column: value} dicts (columns in order of first appearance) or
+        {column: values}."""
+        self._client.log_table(self.run_id, table_frame(rows), artifact_file)
+
+    def log_input(self, path: str | Path, *, context: str, root: str | Path = ".", name: str | None = None,
+                  digest: str | None = None) -> None:
+        """Record a folder or file the stage read as an MLflow dataset input (the run's Datasets).
+
+        context: its role, e.g. ``train`` / ``eval``; name: default ``path`` relative to ``root``;
+        digest: default :func:`listing_digest` (file names and sizes: cheap, not a content hash;
+        pass e.g. the md5 from dvc.lock for one). The profile holds the file and byte counts.
+        """
+        from mlflow.entities import DatasetInput, InputTag
+
+        self._client.log_inputs(self.run_id, [DatasetInput(dataset_entity(path, root=root, name=name, digest=digest),
+                                                           [InputTag("mlflow.data.context", context)])])
 
     def log_model(self, name: str, module, inputs, *, output: str | None = None) -> str:
         """Log a trained torch module as an MLflow model with a signature; returns its URI.
@@ -171,6 +208,18 @@ class NullRun:
     def log_model(self, name: str, module, inputs, *, output: str | None = None) -> str:
         return ""
 
+    def log_image(self, image, artifact_file: str) -> None:
+        pass
+
+    def log_figure(self, fig, artifact_file: str) -> None:
+        pass
+
+    def log_table(self, rows, artifact_file: str) -> None:
+        pass
+
+    def log_input(self, path, *, context: str, root=".", name=None, digest=None) -> None:
+        pass
+
 
 def metric_name(name: str) -> str:
     """``name`` with what MLflow refuses in metric names (``dpmsolver++``'s ``+``) replaced by ``_``."""
@@ -183,3 +232,60 @@ _NOT_IN_METRIC_NAMES = re.compile(r"[^\w\-. :/]")
 def _short(value) -> str:
     text = str(value)
     return text if len(text) <= 500 else text[:497] + "..."
+
+
+def _image(image):
+    """An ndarray for MLflow: uint8 as it is, floats clipped to [0, 1] (MLflow refuses others)."""
+    import numpy as np
+
+    if not isinstance(image, np.ndarray):
+        return image
+    if image.dtype.kind == "f":
+        return np.clip(np.nan_to_num(image), 0.0, 1.0)
+    return image
+
+
+def table_frame(rows):
+    """A pandas DataFrame from rows ({column: value} dicts, columns in order of first appearance)
+    or from {column: values}."""
+    import pandas as pd
+
+    if isinstance(rows, dict):
+        return pd.DataFrame(rows)
+    columns: list[str] = []
+    for row in rows:
+        columns += [k for k in row if k not in columns]
+    return pd.DataFrame([[row.get(k) for k in columns] for row in rows], columns=columns)
+
+
+def listing_digest(path: str | Path) -> tuple[str, dict]:
+    """(16-hex digest of the sorted (relative name, size) of every file under ``path``, profile).
+
+    Reads no file content, so it costs one directory walk; a file edited in place to the same
+    size keeps the digest. Hidden files and typ's temporaries are skipped.
+    """
+    path = Path(path)
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file()
+                                                 and not any(part.startswith(".") for part in p.relative_to(path).parts))
+    listing = [(p.name if p == path else str(p.relative_to(path)), p.stat().st_size) for p in files]
+    return hash_obj(listing)[:16], {"files": len(listing), "bytes": sum(size for _, size in listing)}
+
+
+def dataset_entity(path: str | Path, *, root: str | Path = ".", name: str | None = None, digest: str | None = None):
+    """The :class:`mlflow.entities.Dataset` :meth:`StageRun.log_input` records for ``path``."""
+    import json
+
+    from mlflow.entities import Dataset
+
+    path, root = Path(path), Path(root)
+    if not path.exists():
+        from typ.errors import TypError
+
+        raise TypError(path, "dataset", "a file or folder the stage read", "missing")
+    listed, profile = listing_digest(path)
+    try:
+        default_name = str(path.resolve().relative_to(root.resolve()))
+    except ValueError:
+        default_name = str(path)
+    return Dataset(name=name or default_name, digest=digest or listed, source_type="local",
+                   source=json.dumps({"uri": path.resolve().as_uri()}), profile=json.dumps(profile))
