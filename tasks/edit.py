@@ -111,13 +111,15 @@ def edit_figure(before: AgentView, result: EditedView, grid: Grid, *, title: str
 
     Panels: the view as it was with its boxes, as edited with the edited boxes (the
     regenerated footprint outlined by its cells in the change map), and the change of the
-    occupancy on ``grid``: unchanged, removed (only before), added (only after).
+    occupancy on ``grid`` per voxel (each BEV cell shows what most of its voxels did): unchanged,
+    removed (only before), added (only after).
     """
     from typ import viz
 
     old_occ, new_occ = voxelize(before.points, grid), voxelize(result.view.points, grid)
-    change = viz.error_panel(new_occ, old_occ, grid, boxes=result.view.boxes, title="change (after vs before)",
-                             labels=("unchanged", "removed", "added"))
+    # per voxel: a removed car leaves the ground under it, so its column is still occupied
+    change = viz.error_panel(new_occ, old_occ, grid, per="voxel", boxes=result.view.boxes,
+                             title="change (after vs before, per voxel)", labels=("unchanged", "removed", "added"))
     panels = [viz.cloud_panel("before", before.points, grid=grid, boxes=before.boxes),
               viz.cloud_panel("after", result.view.points, grid=grid, boxes=result.view.boxes,
                               note=f"{len(result.view.points)} points, {int(result.footprint.sum())} cells regenerated"),

@@ -119,7 +119,9 @@ def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) ->
             written.append(viz.save_png(viz.range_figure(view.points, spec, title=f"{folder.name} {timestamp} "
                                                          f"agent {agent_id}"), out / f"{prefix}_{agent_id}_range.png"))
     title = f"{folder.name}  {timestamp}  ({len(scene.agents)} agents, first = ego)"
-    written.append(viz.save_png(viz.panels_figure(panels, title=title, colorbar_z=opts.grid.z_range),
+    colorbar = None if opts.color == "class" and all(v.semantics is not None for v in scene.agents.values()) \
+        else opts.grid.z_range
+    written.append(viz.save_png(viz.panels_figure(panels, title=title, colorbar_z=colorbar),
                                 out / f"{prefix}_agents.png"))
     manifest = read_json_or_none(folder / GENERATED_MANIFEST)
     generated = manifest.get("generated_agents") if isinstance(manifest, dict) else None

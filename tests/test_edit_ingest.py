@@ -149,12 +149,13 @@ def test_edit_figure_shows_before_after_and_the_changed_cells(monkeypatch):
     result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=((-20.0, 15.0, 0.0),)), models=None, grid=GRID,
                                    seed=0)
     fig = edit_module.edit_figure(view, result, GRID, title="edit")
-    assert [ax.get_title() for ax in fig.axes if ax.get_title()] == ["before", "after", "change (after vs before)"]
-    counts = viz.error_counts(voxelize(result.view.points, GRID), voxelize(view.points, GRID))
+    assert [ax.get_title() for ax in fig.axes if ax.get_title()] == ["before", "after",
+                                                                         "change (after vs before, per voxel)"]
+    counts = viz.error_counts(voxelize(result.view.points, GRID), voxelize(view.points, GRID), per="voxel")
     legend = [t.get_text() for t in fig.axes[2].get_legend().get_texts()]
     assert legend == [f"unchanged {counts['tp']}", f"removed {counts['miss']}", f"added {counts['fp']}"]
-    assert counts["fp"] > 0  # the added car's cells
+    assert counts["fp"] > 0 and counts["miss"] > 0  # the added car's voxels, the removed car's
     # every changed cell lies in the regenerated footprint
-    change = viz.error_image(voxelize(result.view.points, GRID), voxelize(view.points, GRID))[::-1, ::-1]
+    change = viz.error_image(voxelize(result.view.points, GRID), voxelize(view.points, GRID), per="voxel")[::-1, ::-1]
     changed = ~np.all(np.isclose(change, viz.TP_COLOUR) | np.isclose(change, viz.BACKGROUND), axis=2)
     assert changed.any() and not (changed & ~result.footprint).any()

@@ -58,10 +58,12 @@ SAMPLE_PANELS: dict[str, str] = {
 #: default BEV window: the paper's ±51.2 m at 0.2 m per pixel
 DEFAULT_RANGE = (-51.2, 51.2)
 DEFAULT_RESOLUTION = 0.2
-PANEL_INCHES = 4.0
+#: a panel's axes come out about 540 px wide: a 512-pixel BEV (the default window) is not
+#: thinned by nearest-neighbour downsampling
+PANEL_INCHES = 4.2
 #: metres: the arrow showing another sensor's heading
 MARKER_LENGTH = 7.0
-DPI = 100
+DPI = 150
 _WHERE = "typ.viz"
 
 
