@@ -271,6 +271,25 @@ def test_edit_regenerates_only_the_edited_footprint(project, tmp_path):
     for other in list_agents(source)[1:]:  # other agents' files are copied unchanged
         assert (tmp_path / source.name / other / "000000.pcd").read_bytes() == \
             (source / other / "000000.pcd").read_bytes()
+    render = tmp_path / f"{source.name}_000000_{ego}_edit.png"  # before / after / changed cells
+    assert render.stat().st_size > 50_000
+
+
+def test_show_renders_generated_agents_beside_their_true_views(project, tmp_path):
+    from typ.formats.opv2v import list_agents
+
+    proj, env, _ = project
+    for split in ("target/test", "real_cav/train"):  # vehicles: truth cast again; cavs: the simulated files
+        folder = proj / "data" / "generated" / split / f"{split.replace('/', '_')}_0000"
+        generated = json.loads((folder / "_typ.json").read_text())["generated_agents"]
+        shown = _run([str(VENV_BIN / "typ"), "show", str(folder), "--timestamp", "000001", "--out", str(tmp_path)],
+                     proj, env)
+        names = {Path(line.split()[-1]).name for line in shown.stdout.splitlines()}
+        prefix = f"{folder.name}_000001"
+        assert names == {f"{prefix}_agents.png", *(f"{prefix}_{a}.png" for a in list_agents(folder)),
+                         *(f"{prefix}_{a}_range.png" for a in list_agents(folder)),
+                         *(f"{prefix}_{a}_sample.png" for a in generated)}
+        assert all((tmp_path / n).stat().st_size > 20_000 for n in names)
 
 
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
