@@ -1,0 +1,51 @@
+"""Cluster-bootstrap intervals: hand-worked pooled ratios, coverage of a known mean, seeds."""
+import numpy as np
+import pytest
+
+from typ.errors import TypError
+from typ.metrics.intervals import Interval, bootstrap, mean_of_means, pooled_ratio
+
+
+def test_pooled_ratio_point_estimate_is_the_pooled_figure_not_the_mean_of_ratios():
+    tp = np.array([1.0, 9.0])
+    union = np.array([10.0, 10.0])
+    iv = pooled_ratio(tp, union, n_boot=200)
+    assert iv.value == pytest.approx(10 / 20)
+    # a scene that is all hits and one that is all misses: replicates range over 0.1 .. 0.9
+    assert 0.1 <= iv.low <= iv.value <= iv.high <= 0.9
+
+
+def test_identical_scenes_give_a_zero_width_interval():
+    iv = pooled_ratio(np.full(8, 3.0), np.full(8, 4.0), n_boot=100)
+    assert (iv.value, iv.low, iv.high) == pytest.approx((0.75, 0.75, 0.75))
+
+
+def test_interval_covers_the_true_mean_about_95_percent_of_the_time():
+    rng = np.random.default_rng(1)
+    hits = 0
+    for trial in range(120):
+        x = rng.normal(2.0, 1.0, 40)
+        iv = mean_of_means(x, n_boot=300, seed=trial)
+        hits += iv.low <= 2.0 <= iv.high
+    assert 0.85 <= hits / 120 <= 1.0
+
+
+def test_seeds_are_averaged_and_resampled():
+    num = np.array([[1.0, 1.0], [3.0, 3.0]])   # seed 0: 0.25, seed 1: 0.75
+    den = np.full((2, 2), 4.0)
+    iv = pooled_ratio(num, den, n_boot=400)
+    assert iv.value == pytest.approx(0.5)
+    assert iv.low == pytest.approx(0.25) and iv.high == pytest.approx(0.75)
+
+
+def test_above_means_no_overlap():
+    a, b = Interval(0.6, 0.55, 0.65), Interval(0.5, 0.45, 0.54)
+    assert a.above(b) and not b.above(a)
+    assert not Interval(0.6, 0.5, 0.7).above(b)
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(TypError, match="n_clusters"):
+        bootstrap(lambda c, s: 0.0, 0)
+    with pytest.raises(TypError, match="den"):
+        pooled_ratio(np.ones(3), np.ones(4))

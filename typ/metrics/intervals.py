@@ -1,0 +1,101 @@
+"""Bootstrap confidence intervals for figures pooled over held-out scenes and training seeds.
+
+Views of one scene (its frames, its (ego, reference) pairs) are correlated, so the unit that
+is resampled is the scene, not the view: a cluster bootstrap. Where several training seeds
+exist, seeds are resampled too, and each replicate's figure is the mean over its seeds of
+the figure pooled over its scenes. The interval is the percentile interval of ``n_boot``
+replicates (Efron & Tibshirani, ch. 13); the point estimate is the figure on the data as
+observed. "A beats B" is claimed only when A's and B's intervals do not overlap.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from typ.errors import TypError
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A figure with its bootstrap interval: ``value`` [``low``, ``high``] at ``level``."""
+
+    value: float
+    low: float
+    high: float
+    level: float = 0.95
+
+    def above(self, other: "Interval") -> bool:
+        """True when this interval lies wholly above ``other``'s (no overlap)."""
+        return self.low > other.high
+
+    def to_dict(self) -> dict[str, float]:
+        return {"value": self.value, "low": self.low, "high": self.high}
+
+    def text(self, digits: int = 3) -> str:
+        if not np.isfinite(self.value):
+            return "–"
+        return f"{self.value:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+
+def bootstrap(stat: Callable[[np.ndarray, np.ndarray], float], n_clusters: int, n_seeds: int = 1, *,
+              n_boot: int = 1000, level: float = 0.95, seed: int = 0) -> Interval:
+    """``stat(cluster_index, seed_index)`` -> figure, evaluated on ``n_boot`` resamples of the
+    clusters (and of the seeds when ``n_seeds > 1``), each drawn with replacement.
+
+    ``stat`` receives index arrays (repeats allowed) and must pool over them as it pools over
+    the whole set, e.g. ``IoU = sum(tp[c]) / sum(tp[c] + fp[c] + fn[c])``. Replicates whose
+    figure is undefined (NaN, e.g. no true voxel drawn) are left out of the percentiles.
+    """
+    if n_clusters < 1:
+        raise TypError("bootstrap", "n_clusters", "at least one scene", n_clusters)
+    if n_seeds < 1:
+        raise TypError("bootstrap", "n_seeds", "at least one seed", n_seeds)
+    if not 0 < level < 1:
+        raise TypError("bootstrap", "level", "a probability in (0, 1)", level)
+    clusters, seeds = np.arange(n_clusters), np.arange(n_seeds)
+    value = float(stat(clusters, seeds))
+    rng = np.random.default_rng(seed)
+    reps = np.empty(n_boot)
+    for b in range(n_boot):
+        c = rng.integers(0, n_clusters, n_clusters)
+        s = rng.integers(0, n_seeds, n_seeds) if n_seeds > 1 else seeds
+        reps[b] = stat(c, s)
+    reps = reps[np.isfinite(reps)]
+    if len(reps) == 0:
+        return Interval(value, float("nan"), float("nan"), level)
+    tail = (1 - level) / 2 * 100
+    low, high = np.percentile(reps, [tail, 100 - tail])
+    return Interval(value, float(low), float(high), level)
+
+
+def pooled_ratio(num: np.ndarray, den: np.ndarray, **kw) -> Interval:
+    """Interval of ``mean over seeds of sum(num) / sum(den)`` over scenes.
+
+    num, den: (S, K) per seed and scene (a (K,) array is one seed), e.g. true positives and
+    |pred ∪ true| per scene for a pooled IoU, hits and boxes for the object hit rate.
+    """
+    num, den = np.atleast_2d(np.asarray(num, np.float64)), np.atleast_2d(np.asarray(den, np.float64))
+    if num.shape != den.shape:
+        raise TypError("pooled_ratio", "den", f"the shape of num {num.shape}", den.shape)
+
+    def stat(c: np.ndarray, s: np.ndarray) -> float:
+        n, d = num[s][:, c].sum(axis=1), den[s][:, c].sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return float(np.mean(n / d)) if (d > 0).all() else float("nan")
+
+    return bootstrap(stat, num.shape[1], num.shape[0], **kw)
+
+
+def mean_of_means(values: np.ndarray, **kw) -> Interval:
+    """Interval of ``mean over seeds of mean over scenes`` of a per-scene figure (S, K) or (K,)
+    (e.g. a mean Chamfer distance per scene); NaN entries are skipped."""
+    v = np.atleast_2d(np.asarray(values, np.float64))
+
+    def stat(c: np.ndarray, s: np.ndarray) -> float:
+        with np.errstate(invalid="ignore"), np.testing.suppress_warnings() as sup:
+            sup.filter(RuntimeWarning)
+            return float(np.nanmean(np.nanmean(v[s][:, c], axis=1)))
+
+    return bootstrap(stat, v.shape[1], v.shape[0], **kw)
