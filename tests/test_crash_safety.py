@@ -1,7 +1,7 @@
 """Crash safety: ``kill -9`` a stage mid-way, rerun it, and get what an uninterrupted run gets.
 
 A throwaway project (tiny params, 5 target scenarios) runs the stages through the CLI
-(``typ.cli.main``) in subprocesses. Each stage is killed with SIGKILL (its whole process group)
+(``cli.main.main``) in subprocesses. Each stage is killed with SIGKILL (its whole process group)
 as soon as its first output is complete, then rerun:
 
 - simulate and voxelize: after the kill every file under a final name is byte-identical to the
@@ -138,7 +138,7 @@ def make_project(root: Path, params: dict = SMALL) -> Path:
 #: runs ``typ run <stage>`` for each stage in turn in one process; stops at the first failure
 DRIVER = """
 import sys
-from typ.cli import main
+from cli.main import main
 root, stages = sys.argv[1], sys.argv[2:]
 for stage in stages:
     code = main(["--root", root, "run", stage])
