@@ -8,7 +8,9 @@ expected, e.g. ``params.yaml: voxelize.grid.shape: expected 3 positive integers`
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import types
 import typing
 from dataclasses import dataclass, field
@@ -632,10 +634,17 @@ def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict |
 
 
 def profile_defaults(profile: str) -> dict:
-    data = yaml.safe_load(PROFILES_FILE.read_text())
+    data = _profiles()
     if profile not in data:
         raise TypError(PROFILES_FILE, "profile", f"one of {sorted(data)}", profile)
-    return data[profile]
+    return copy.deepcopy(data[profile])
+
+
+@functools.lru_cache(maxsize=1)
+def _profiles() -> dict:
+    # parsed once per process (a stage loads its params three times: CLI, stage, flow), with
+    # libyaml when PyYAML has it: the pure-Python parser takes a tenth of a second on this file
+    return yaml.load(PROFILES_FILE.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
 def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "") -> dict:
