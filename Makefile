@@ -45,8 +45,10 @@ $(STAMP): requirements.txt requirements.lock pyproject.toml
 	$(BIN)/python -c "import torch, open3d, prefect, mlflow, dvc; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	touch $(STAMP)
 
+# one Prefect server for every stage dvc starts (not one per stage), stopped when dvc ends;
+# a PREFECT_API_URL in the environment (a server of yours, Prefect Cloud) is used instead
 run: $(STAMP)
-	$(BIN)/dvc repro
+	$(BIN)/typ with-server $(BIN)/dvc repro
 	$(BIN)/typ report
 
 test: $(STAMP)
@@ -57,7 +59,7 @@ test: $(STAMP)
 # report.py gathers every reports/bench_*.md into reports/bench.md.
 bench: $(STAMP)
 	$(BIN)/python bench/voxelize.py --out reports
-	test -f artifacts/stage1/model.pt || $(BIN)/dvc repro
+	test -f artifacts/stage1/model.pt || $(BIN)/typ with-server $(BIN)/dvc repro
 	$(BIN)/python bench/sampling.py --out reports
 	$(BIN)/python bench/two_stage.py --out reports
 	$(BIN)/python bench/pipeline.py --out reports

@@ -1,7 +1,8 @@
-"""Pipeline cost: per-stage time and memory, incremental runs, skipping, paper scale, fusion inference.
+"""Pipeline cost: per-stage time and memory, fixed cost per stage, incremental runs, skipping,
+paper scale, fusion inference.
 
-    python bench/pipeline.py [--only pipeline,skipping,paper,fusion] [--scale N] [--out reports]
-        [--repeats R] [--keep]
+    python bench/pipeline.py [--only pipeline,overhead,skipping,paper,fusion] [--scale N]
+        [--out reports] [--repeats R] [--noop-repeats R] [--baseline REV] [--keep]
 
 Run from the repository root. Each section is one function; a run measures the sections named
 by --only (default: all), stores their raw numbers in <out>/bench_pipeline.json beside those
@@ -14,7 +15,7 @@ stamped with when and on which machine it was measured.
   split they use. Three `dvc repro` runs, one after another: from nothing (full), again with
   nothing changed (no-op), and after adding one scenario to target/test (incremental; a split
   the models are not trained on, so no model needs retraining, only evaluating and
-  generating). Every `typ run <stage>` process that dvc starts is followed with psutil every
+  generating), all under one Prefect server as `make run` has. Every `typ run <stage>` process that dvc starts is followed with psutil every
   50 ms together with its descendants (Prefect's temporary server, worker processes): wall
   time from the first to the last poll that sees it, plus one interval; peak RSS as the
   largest sampled sum over the tree; the largest single process's peak from the kernel's
@@ -23,6 +24,22 @@ stamped with when and on which machine it was measured.
   "dvc" is the rest of the wall time: dvc's start, hashing, lock and checks between stages.
   Work reported: the seconds a stage's metrics give for its own work (seconds_total, else
   seconds_training). Target for the incremental run: at most 1.5 / N of the full run's time.
+- overhead: what a stage costs beyond its work (issue 18), all in one run, on a throwaway copy
+  of the project with its own params.yaml, the tiny pipeline `make run` runs: one local Prefect
+  server started (timed), then `dvc repro` from nothing with PREFECT_API_URL pointing at it,
+  each stage's process tree followed as above. A stage's work is its Prefect flow run (from
+  its Running state to its final one, read from the server: the flow's body, which reads the
+  stage's inputs, trains or computes, logs and writes) less MLflow's start inside it (the
+  run's `typ.mlflow_start_s` tag: import, store, stale-run check); its fixed cost is the rest
+  of its wall time: interpreter start, imports, params, the Prefect flow run's creation and
+  end, MLflow's start, exit. The fixed costs of all stages plus the server's start, over the
+  pipeline's wall time (server start + `dvc repro`): target ≤ 10 %.
+  Then, after the pipeline, `typ run <stage>` with nothing to do (simulate and voxelize: every
+  scene unchanged), --noop-repeats times each, with the shared server and (voxelize) with
+  Prefect's temporary server per process: wall time from process start to exit (exact) and CPU
+  of the process tree; target ≤ 4 s wall. `typ --help` and `typ check`: wall, target < 1 s.
+  With --baseline REV, that revision's code (`git archive`, same params and venv) runs
+  simulate and voxelize once, then the same no-op voxelize and CLI commands.
 - skipping: from metrics/generate.json of the default data (the last `make run`) and of the
   bench's own runs. A reference view is skipped when its vehicle (or CAV) lies outside
   generate's [min_distance, max_distance] band (reference_too_close, reference_out_of_range;
@@ -60,6 +77,7 @@ stamped with when and on which machine it was measured.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import datetime as dt
 import json
@@ -74,6 +92,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Iterator
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable from a checkout
 
@@ -81,7 +100,7 @@ from bench.report import machine, machine_line  # noqa: E402
 from typ.io import atomic_path, read_json_or_none, write_json, write_text  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-SECTIONS = ("pipeline", "skipping", "paper", "fusion")
+SECTIONS = ("pipeline", "overhead", "skipping", "paper", "fusion")
 #: the e2e test's small params (tests/test_pipeline_e2e.py) with a real_cav/test scenario, which
 #: the fusion stage evaluates on, and fusion training for a couple of steps; every split's
 #: count is multiplied by --scale
@@ -108,6 +127,8 @@ N_TRAIN, N_GEN = 17_400, 36_000    # TYP §4.5: WOD samples the generator is tra
 PROFILE_ORDER = ("tiny", "paper")
 FUSION_ORDER = ("none", "early", "late", "attfuse", "v2xvit")   # tasks/fusion.py METHODS
 WARMUP_S = 5.0                      # a first call longer than this counts: its warm-up share is small
+NOOP_STAGES = ("simulate", "voxelize")  # per-scene stages: a rerun with nothing changed has nothing to do
+NOOP_TARGET_S, FIXED_TARGET, STARTUP_TARGET_S = 4.0, 0.10, 1.0   # issue 18: no-op stage, fixed share, CLI
 
 
 # ---------------------------------------------------------------- pure helpers
@@ -228,7 +249,102 @@ def incremental_verdicts(result: dict) -> list[str]:
         lines.append(f"- **fixed cost per stage** ({label} run): the {len(work)} stages that report their own work "
                      f"(seconds_total, else seconds_training) report {sum(work.values()):.1f} s of it in {wall:.1f} s "
                      f"wall; the median stage spends {fixed:.1f} CPU s beyond its reported work: process start and "
-                     "imports, Prefect's temporary server, MLflow, reading inputs, evaluation.")
+                     "imports, Prefect's flow run, MLflow, reading inputs, evaluation.")
+    return lines
+
+
+def median(values: list[float]) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def overhead_stage_rows(result: dict) -> list[dict]:
+    """Per stage of the full run: wall; its Prefect flow run (the stage's body: reading inputs, its
+    MLflow run, the work); MLflow's start inside it; fixed = wall − flow run + MLflow's start;
+    then the Prefect server's start (once per pipeline)."""
+    full = result["full"]
+    rows = []
+    for stage, m in full["stages"].items():
+        flow, mlflow_start = full["flow_s"].get(stage), full["mlflow_start_s"].get(stage, 0.0)
+        rows.append({"name": stage, "wall": m["seconds"], "flow": flow, "mlflow": mlflow_start, "cpu": m["cpu_s"],
+                     "fixed": m["seconds"] - flow + mlflow_start if flow is not None else None})
+    rows.append({"name": "Prefect server start (once)", "wall": result["server_s"], "flow": None, "mlflow": None,
+                 "cpu": None, "fixed": result["server_s"]})
+    return rows
+
+
+def overhead_totals(result: dict) -> dict:
+    """The pipeline's wall time (server start + `dvc repro`), the stages' fixed cost together, their ratio."""
+    rows = overhead_stage_rows(result)
+    wall = result["full"]["seconds"] + result["server_s"]
+    fixed = sum(r["fixed"] for r in rows if r["fixed"] is not None)
+    return {"wall": wall, "fixed": fixed, "ratio": fixed / wall, "unmeasured": [r["name"] for r in rows
+                                                                             if r["fixed"] is None]}
+
+
+def overhead_table(result: dict) -> str:
+    head = ("| stage | wall s | its flow run s | of which MLflow's start s | fixed s (wall − flow run + MLflow's "
+            "start) | fixed / pipeline wall | CPU s |")
+    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    totals = overhead_totals(result)
+    for r in overhead_stage_rows(result):
+        share = f"{r['fixed'] / totals['wall']:.1%}" if r["fixed"] is not None else "–"
+        lines.append(f"| {r['name']} | {r['wall']:.1f} | {fmt(r['flow'], '.1f')} | {fmt(r['mlflow'], '.2f')} "
+                     f"| {fmt(r['fixed'], '.1f')} | {share} | {fmt(r['cpu'], '.1f')} |")
+    rest = result["full"]["seconds"] - sum(m["seconds"] for m in result["full"]["stages"].values())
+    lines.append(f"| dvc (start, hashing, checks) | {rest:.1f} | | | | | |")
+    lines.append(f"| **pipeline** | **{totals['wall']:.1f}** | | | **{totals['fixed']:.1f}** | **{totals['ratio']:.1%}** "
+                 f"| {sum(m['cpu_s'] for m in result['full']['stages'].values()):.1f} |")
+    return "\n".join(lines)
+
+
+def noop_table(result: dict) -> str:
+    head = (f"| code | `typ run` with nothing to do | wall s, median of {result['repeats']} | min – max "
+            f"| CPU s (process tree) | × the {NOOP_TARGET_S:.0f} s target |")
+    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    runs = [("this branch", k, v) for k, v in result["noop"].items()]
+    if result.get("baseline"):
+        b = result["baseline"]
+        runs += [(f"{b['rev']} ({b['sha']})", k, v) for k, v in b["noop"].items()]
+    for code, what, r in runs:
+        wall = median(r["wall_s"])
+        lines.append(f"| {code} | {what} | {wall:.2f} | {min(r['wall_s']):.2f} – {max(r['wall_s']):.2f} "
+                     f"| {median(r['cpu_s']):.2f} | {wall / NOOP_TARGET_S:.2f} |")
+    return "\n".join(lines)
+
+
+def startup_table(result: dict) -> str:
+    head = f"| code | command | wall s, median of {result['repeats']} | × the {STARTUP_TARGET_S:.0f} s target |"
+    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    runs = [("this branch", result["startup"])]
+    if result.get("baseline"):
+        runs.append((f"{result['baseline']['rev']} ({result['baseline']['sha']})", result["baseline"]["startup"]))
+    for code, startup in runs:
+        for name, walls in startup.items():
+            lines.append(f"| {code} | `{name}` | {median(walls):.2f} | {median(walls) / STARTUP_TARGET_S:.2f} |")
+    return "\n".join(lines)
+
+
+def overhead_verdicts(result: dict) -> list[str]:
+    """'- **...**' lines: the no-op stage against 4 s, the fixed cost against 10 %, the CLI against 1 s."""
+    def met(ok: bool) -> str:
+        return "met" if ok else "**not met**"
+
+    noop = median(result["noop"]["voxelize, shared server"]["wall_s"])
+    totals = overhead_totals(result)
+    lines = [f"- **no-op stage**: `typ run voxelize` with every scene unchanged took {noop:.2f} s wall (median of "
+             f"{result['repeats']}) = {noop / NOOP_TARGET_S:.2f} × the {NOOP_TARGET_S:.0f} s target: "
+             f"{met(noop <= NOOP_TARGET_S)}."]
+    if result.get("baseline"):
+        before = median(result["baseline"]["noop"]["voxelize, temporary server"]["wall_s"])
+        lines[0] += (f" {result['baseline']['rev']}'s code took {before:.2f} s with its temporary Prefect server per "
+                     f"stage ({before / noop:.1f} × as long).")
+    unmeasured = f" (not measured: {', '.join(totals['unmeasured'])})" if totals["unmeasured"] else ""
+    lines.append(f"- **fixed cost**: the stages' fixed costs together with the one Prefect server's start are "
+                 f"{totals['fixed']:.1f} s of the tiny pipeline's {totals['wall']:.1f} s wall = {totals['ratio']:.1%}; "
+                 f"target ≤ {FIXED_TARGET:.0%}: {met(totals['ratio'] <= FIXED_TARGET)}{unmeasured}.")
+    worst = max(median(w) for w in result["startup"].values())
+    lines.append(f"- **start-up**: " + ", ".join(f"`{k}` {median(w):.2f} s" for k, w in result["startup"].items())
+                 + f"; target < {STARTUP_TARGET_S:.0f} s: {met(worst < STARTUP_TARGET_S)}.")
     return lines
 
 
@@ -330,6 +446,13 @@ def render(store: dict) -> str:
                   f"{stamp(pipe)} Scenarios per split: {json.dumps(params['scenarios'])}, {params['frames']} frames "
                   f"each; stages in dvc.yaml: {', '.join(pipe['stages'])}.", "",
                   stage_table(pipe), "", *incremental_verdicts(pipe), ""]
+    over = store.get("overhead")
+    if over:
+        params_used = over.get("params_file") or "the project's params.yaml (the tiny pipeline `make run` runs)"
+        parts += ["## Fixed cost per stage: the tiny pipeline, stages with nothing to do, the CLI", "",
+                  f"{stamp(over)} Params: {params_used}; from nothing, under one Prefect server.", "",
+                  overhead_table(over), "", noop_table(over), "", startup_table(over), "",
+                  *overhead_verdicts(over), ""]
     skip = store.get("skipping")
     if skip or pipe:
         rows = []
@@ -447,11 +570,12 @@ class StageMonitor(threading.Thread):
     ``peak_process_mb`` (largest VmHWM seen), ``cpu_s`` (user + system, processes as last seen).
     """
 
-    def __init__(self, pid: int, *, interval: float = POLL_S):
+    def __init__(self, pid: int, *, interval: float = POLL_S, label: str | None = None):
         super().__init__(daemon=True)
         import psutil
 
         self._psutil, self.root, self.interval = psutil, psutil.Process(pid), interval
+        self.fixed_label = label  # charge the root and its whole tree to this label
         self._halt = threading.Event()
         self._stage_of: dict[tuple[int, float], str | None] = {}
         self._cpu: dict[tuple[int, float], tuple[str, float]] = {}
@@ -485,10 +609,14 @@ class StageMonitor(threading.Thread):
             procs = self.root.children(recursive=True)
         except psutil.Error:
             return
+        if self.fixed_label is not None:
+            procs.append(self.root)
         by_pid = {p.pid: p for p in procs}
         labels: dict[int, str | None] = {}
 
         def label(p) -> str | None:  # the outermost `typ run <stage>` at or above p
+            if self.fixed_label is not None:
+                return self.fixed_label
             if p.pid not in labels:
                 labels[p.pid] = None  # cycle guard
                 try:
@@ -521,11 +649,12 @@ class StageMonitor(threading.Thread):
             self.stages[stage]["peak_rss_mb"] = max(self.stages[stage]["peak_rss_mb"], total)
 
 
-def measured(cmd: list[str], cwd: Path, env: dict) -> dict:
-    """Run ``cmd``; its wall time, stdout, and per-stage numbers of the `typ run` processes it starts."""
+def measured(cmd: list[str], cwd: Path, env: dict, *, label: str | None = None) -> dict:
+    """Run ``cmd``; its wall time, stdout, and per-stage numbers of the `typ run` processes it starts
+    (``label``: the whole process tree of ``cmd``, itself included, counts as that one stage)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    monitor = StageMonitor(proc.pid)
+    monitor = StageMonitor(proc.pid, label=label)
     monitor.start()
     stdout, stderr = proc.communicate()
     seconds = time.perf_counter() - t0
@@ -596,28 +725,177 @@ def bench_pipeline(scale: int, *, keep: bool = False) -> dict:
         copy_project(proj)
         params = small_params(scale)
         (proj / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-        env = project_env(proj)
-        for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "bench snapshot"]):
-            subprocess.run(cmd, cwd=proj, env=env, check=True, capture_output=True)
+        git_snapshot(proj, project_env(proj))
         stages = pipeline_stages(yaml.safe_load((proj / "dvc.yaml").read_text()))
         runs = {}
-        for name in ("full", "noop", "incremental"):
-            if name == "incremental":
-                (proj / "params.yaml").write_text(yaml.safe_dump(with_added_scenario(params), sort_keys=False))
-            print(f"pipeline: dvc repro ({name}) in {proj}", file=sys.stderr)
-            runs[name] = measured(["dvc", "repro"], proj, env)
-            runs[name]["scenario_counts"] = scenario_counts(proj)
-            runs[name]["generate"] = read_json_or_none(proj / "metrics" / "generate.json") or {}
-            runs[name]["work"] = {s: reported_work(read_json_or_none(proj / "metrics" / f"{s}.json") or {})
-                                  for s in runs[name]["stages"]}
-            ran = ", ".join(f"{k} {v['seconds']:.1f} s" for k, v in runs[name]["stages"].items())
-            print(f"  {runs[name]['seconds']:.1f} s; stages run: {ran or 'none'}", file=sys.stderr)
+        with shared_server(proj, project_env(proj)) as (env, _):
+            for name in ("full", "noop", "incremental"):
+                if name == "incremental":
+                    (proj / "params.yaml").write_text(yaml.safe_dump(with_added_scenario(params), sort_keys=False))
+                print(f"pipeline: dvc repro ({name}) in {proj}", file=sys.stderr)
+                runs[name] = measured(["dvc", "repro"], proj, env)
+                runs[name]["scenario_counts"] = scenario_counts(proj)
+                runs[name]["generate"] = read_json_or_none(proj / "metrics" / "generate.json") or {}
+                runs[name]["work"] = {s: reported_work(read_json_or_none(proj / "metrics" / f"{s}.json") or {})
+                                      for s in runs[name]["stages"]}
+                ran = ", ".join(f"{k} {v['seconds']:.1f} s" for k, v in runs[name]["stages"].items())
+                print(f"  {runs[name]['seconds']:.1f} s; stages run: {ran or 'none'}", file=sys.stderr)
     finally:
         if keep:
             print(f"pipeline: kept {proj}", file=sys.stderr)
         else:
             shutil.rmtree(work, ignore_errors=True)
     return {"scale": scale, "params": params, "added": list(ADDED), "stages": stages, **runs}
+
+
+def git_snapshot(proj: Path, env: dict) -> None:
+    for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "bench snapshot"]):
+        subprocess.run(cmd, cwd=proj, env=env, check=True, capture_output=True)
+
+
+@contextlib.contextmanager
+def shared_server(proj: Path, env: dict) -> Iterator[tuple[dict, float]]:
+    """(env with PREFECT_API_URL, seconds the server took to start): one local Prefect server for
+    everything run inside, as `make run` (`typ with-server dvc repro`) has; stopped on the way out."""
+    from flows.server import LocalServer
+
+    t0 = time.perf_counter()
+    server = LocalServer.start(proj / ".prefect", ui=False, env=env, timeout=600)
+    started = time.perf_counter() - t0
+    try:
+        yield {**env, "PREFECT_API_URL": server.api_url}, started
+    finally:
+        server.stop()
+
+
+def mlflow_starts(proj: Path, since: float) -> dict[str, float]:
+    """stage -> seconds MLflow took to start in its runs created after ``since`` (epoch s): the
+    ``typ.mlflow_start_s`` tag (import, store, stale-run check, until the run exists)."""
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(f"sqlite:///{proj / 'mlruns.db'}")
+    starts: dict[str, float] = {}
+    for exp in client.search_experiments():
+        for run in client.search_runs([exp.experiment_id], max_results=10_000):
+            tags = run.data.tags
+            if tags.get("typ.stage") and "typ.mlflow_start_s" in tags and run.info.start_time / 1e3 >= since:
+                starts[tags["typ.stage"]] = starts.get(tags["typ.stage"], 0.0) + float(tags["typ.mlflow_start_s"])
+    return starts
+
+
+#: prints {flow name: [seconds of each flow run that ended]} of the Prefect API in PREFECT_API_URL
+FLOW_RUNS = """
+import json
+from prefect.client.orchestration import get_client
+with get_client(sync_client=True) as client:
+    names = {f.id: f.name for f in client.read_flows()}
+    out = {}
+    for run in client.read_flow_runs(limit=200):
+        if run.start_time and run.end_time:
+            out.setdefault(names.get(run.flow_id, "?"), []).append((run.end_time - run.start_time).total_seconds())
+print(json.dumps(out))
+"""
+
+
+def flow_run_seconds(env: dict) -> dict[str, float]:
+    """flow name -> seconds its flow runs took in the Prefect API of ``env``: from the flow run's
+    Running state (its body starts) to its final state, the stage's work with its inputs read."""
+    proc = subprocess.run([str(REPO / ".venv" / "bin" / "python"), "-c", FLOW_RUNS], env=env, capture_output=True,
+                          text=True, check=True)
+    return {name: sum(runs) for name, runs in json.loads(proc.stdout.strip().splitlines()[-1]).items()}
+
+
+def typ_command(proj: Path) -> list[str]:
+    """How to start the `typ` console script of the code in ``proj`` (its pyproject's entry point)
+    with the checkout's interpreter: the code of another revision runs unchanged."""
+    import tomllib
+
+    entry = tomllib.loads((proj / "pyproject.toml").read_text())["project"]["scripts"]["typ"]
+    module, func = entry.split(":")
+    return [str(REPO / ".venv" / "bin" / "python"), "-c",
+            f"import sys; sys.argv[0] = 'typ'; from {module} import {func}; sys.exit({func}())"]
+
+
+def noop_runs(typ: list[str], stage: str, proj: Path, env: dict, repeats: int) -> dict:
+    """``typ run <stage>`` ``repeats`` times with nothing to do: wall s (exact, process start to
+    exit) and CPU s of the process tree (a temporary Prefect server included) of each."""
+    walls, cpus = [], []
+    for _ in range(repeats):
+        r = measured([*typ, "run", stage], proj, env, label=stage)
+        walls.append(r["seconds"])
+        cpus.append(r["stages"].get(stage, {}).get("cpu_s", float("nan")))
+    return {"wall_s": walls, "cpu_s": cpus}
+
+
+def command_walls(cmd: list[str], proj: Path, env: dict, repeats: int) -> list[float]:
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        subprocess.run(cmd, cwd=proj, env=env, check=True, capture_output=True)
+        walls.append(time.perf_counter() - t0)
+    return walls
+
+
+def bench_overhead(*, repeats: int, baseline: str | None = None, params: Path | None = None,
+                   keep: bool = False) -> dict:
+    """The tiny pipeline (the checkout's params.yaml) from nothing under one Prefect server, each
+    stage's fixed cost (wall − time in its MLflow run), no-op stages, `typ --help` / `typ check`;
+    with ``baseline`` (a git revision) the same no-op stage of that revision's code."""
+    work = Path(tempfile.mkdtemp(prefix="typ-bench-overhead-"))
+    proj = work / "project"
+    try:
+        copy_project(proj)
+        if params is not None:
+            shutil.copy2(params, proj / "params.yaml")
+        env = project_env(proj)
+        git_snapshot(proj, env)
+        typ = typ_command(proj)
+        result: dict = {"repeats": repeats, "params": (proj / "params.yaml").read_text(),
+                        "params_file": str(params) if params is not None else None,
+                        "startup": {name: command_walls([*typ, *argv], proj, env, repeats)
+                                    for name, argv in (("typ --help", ["--help"]), ("typ check", ["check"]))}}
+        with shared_server(proj, env) as (api, server_s):
+            print(f"overhead: dvc repro (tiny pipeline) in {proj}", file=sys.stderr)
+            since = time.time()
+            full = measured(["dvc", "repro"], proj, api)
+            full["flow_s"] = flow_run_seconds(api)          # before the no-op runs add theirs
+            full["mlflow_start_s"] = mlflow_starts(proj, since)
+            result.update(server_s=server_s, full=full, noop={})
+            for stage in NOOP_STAGES:
+                result["noop"][f"{stage}, shared server"] = noop_runs(typ, stage, proj, api, repeats)
+        result["noop"]["voxelize, temporary server"] = noop_runs(typ, "voxelize", proj, env, repeats)
+        if baseline:
+            result["baseline"] = {"rev": baseline, **bench_baseline(baseline, work, proj, repeats)}
+    finally:
+        if keep:
+            print(f"overhead: kept {work}", file=sys.stderr)
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+    return result
+
+
+def bench_baseline(rev: str, work: Path, proj: Path, repeats: int) -> dict:
+    """``rev``'s code on the same params: simulate + voxelize once, then its no-op voxelize with a
+    temporary Prefect server per stage (as its `make run` had) and with a shared one."""
+    base = work / "baseline"
+    base.mkdir()
+    archive = subprocess.run(["git", "archive", rev], cwd=REPO, capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+    shutil.copy2(proj / "params.yaml", base / "params.yaml")
+    (base / ".venv").symlink_to(REPO / ".venv")
+    env = project_env(base)
+    typ = typ_command(base)
+    sha = subprocess.run(["git", "rev-parse", "--short", rev], cwd=REPO, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    out = {"sha": sha, "startup": {name: command_walls([*typ, *argv], base, env, repeats)
+                                   for name, argv in (("typ --help", ["--help"]), ("typ check", ["check"]))},
+           "noop": {}}
+    with shared_server(base, env) as (api, _):
+        for stage in NOOP_STAGES:   # its own data first: a change to the readers' code redoes every scene
+            measured([*typ, "run", stage], base, api, label=stage)
+        out["noop"]["voxelize, shared server"] = noop_runs(typ, "voxelize", base, api, repeats)
+    out["noop"]["voxelize, temporary server"] = noop_runs(typ, "voxelize", base, env, repeats)
+    return out
 
 
 def bench_skipping(root: Path) -> dict:
@@ -822,14 +1100,18 @@ def parse_args(argv: list[str] | None):
     ap.add_argument("--repeats", type=int, default=2, help="paper: timed training steps; fusion: timed calls")
     ap.add_argument("--agents", type=int, default=3, help="fusion: agents per frame, the ego included")
     ap.add_argument("--points", type=int, default=30_000, help="fusion: points per agent's cloud")
-    ap.add_argument("--keep", action="store_true", help="pipeline: keep the throwaway project (path on stderr)")
+    ap.add_argument("--keep", action="store_true", help="pipeline, overhead: keep the throwaway project (path on stderr)")
+    ap.add_argument("--params", help="overhead: this params file instead of the project's (the tiny pipeline)")
+    ap.add_argument("--noop-repeats", type=int, default=3, help="overhead: runs of each no-op stage and CLI command")
+    ap.add_argument("--baseline", help="overhead: also time the no-op stage and the CLI of this git revision's code "
+                                       "(e.g. main)")
     args = ap.parse_args(argv)
     only = [s.strip() for s in args.only.split(",") if s.strip()]
     bad = [s for s in only if s not in SECTIONS]
     if bad or not only:
         ap.error(f"--only: expected sections of {list(SECTIONS)}, got {bad or only}")
-    if args.scale < 1 or args.repeats < 1 or args.agents < 1 or args.points < 1:
-        ap.error("--scale, --repeats, --agents and --points must be positive")
+    if args.scale < 1 or args.repeats < 1 or args.agents < 1 or args.points < 1 or args.noop_repeats < 1:
+        ap.error("--scale, --repeats, --agents, --points and --noop-repeats must be positive")
     return args, only
 
 
@@ -843,6 +1125,9 @@ def main(argv: list[str] | None = None) -> int:
         t0, started = time.perf_counter(), section_stamp()
         if section == "pipeline":
             result = bench_pipeline(args.scale, keep=args.keep)
+        elif section == "overhead":
+            result = bench_overhead(repeats=args.noop_repeats, baseline=args.baseline, keep=args.keep,
+                                    params=Path(args.params).resolve() if args.params else None)
         elif section == "skipping":
             result = bench_skipping(Path.cwd())
         elif section == "paper":

@@ -19,7 +19,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from typ.config import Config
 from typ.errors import TypError
 from typ.io import remove_stale_temporaries, write_json
-from typ.tracking import stage_run
+from typ.tracking import is_main_process, stage_run
 
 log = logging.getLogger("typ")
 
@@ -159,10 +159,8 @@ def plain_task(fn: Callable, name: str):
 
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
     """``metrics/<stage>.json`` for DVC; under torchrun only rank 0 writes it."""
-    from typ.distributed import is_main
-
     path = root / "metrics" / f"{stage}.json"
-    if is_main():
+    if is_main_process():
         write_json(path, metrics)
     return path
 

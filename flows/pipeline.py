@@ -26,16 +26,17 @@ STAGES = Config.STAGES
 #: stages that fan out per scene (a task runner: threads or Dask); the others train (torchrun/DDP)
 PER_SCENE = ("simulate", "voxelize", "generate")
 TRAINING = tuple(s for s in STAGES if s not in PER_SCENE)
+#: stages whose code never imports torch (nor diffusers, mlflow's model code): `typ run` sets up
+#: no device for them, and a run with nothing to do costs its imports of Prefect, pyarrow, MLflow
+WITHOUT_TORCH = ("simulate", "voxelize")
 
 
 def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_runner: str = "thread",
               address: str | None = None) -> dict:
     """Run one stage's flow; per-scene stages fan out on ``task_runner`` (thread | dask)."""
-    from typ import distributed
-
     cfg = load_config(Path(root) / params)
     block = cfg.block(stage)
-    if distributed.world_size() > 1 and stage not in TRAINING:
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and stage not in TRAINING:  # under torchrun
         raise TypError("typ run", "stage", f"a training stage {list(TRAINING)} under torchrun "
                        "(per-scene stages scale out with --runner dask)", stage)
     fl = _flow(stage)

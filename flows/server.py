@@ -1,11 +1,13 @@
-"""A local Prefect server for ``typ serve``: ``prefect server start`` on loopback, sqlite in
-``PREFECT_HOME``, analytics off; stopped by killing the process group it was started in.
+"""A local Prefect server for ``typ serve``, ``typ run all`` and ``typ with-server``: ``prefect
+server start`` on loopback, sqlite in ``PREFECT_HOME``, analytics off; stopped by killing the
+process group it was started in, on every way out of the code that started it.
 
 Prefect is not imported here: it reads ``PREFECT_API_URL`` once, when first imported, so the
 caller starts the server, exports its URL, and only then imports the flows.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -15,8 +17,12 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Iterator
 
 from typ.errors import TypError
+
+#: signals held while a server starts or stops (see :meth:`LocalServer.start`)
+HELD_SIGNALS = {signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -56,11 +62,21 @@ class LocalServer:
         log = home / "server.log"
         cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
                "--analytics-off", "--ui" if ui else "--no-ui"]
-        with open(log, "ab") as out:
-            proc = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, start_new_session=True)
-        server = cls(proc, host, port, log)
-        server.wait_healthy(timeout)
+        # A signal that arrives between the fork and `server = ...` would leave a server nobody
+        # knows about: hold SIGTERM/SIGINT until the handle exists, then stop it on any way out.
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
+        try:
+            with open(log, "ab") as out:
+                proc = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL, start_new_session=True)
+            server = cls(proc, host, port, log)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        try:
+            server.wait_healthy(timeout)
+        except BaseException:  # SIGTERM (as SystemExit), Ctrl-C, a failed start: no server left behind
+            server.stop()
+            raise
         return server
 
     def wait_healthy(self, timeout: float) -> None:
@@ -80,15 +96,59 @@ class LocalServer:
         raise RuntimeError(f"prefect server not healthy after {timeout:.0f} s; see {self.log}")
 
     def stop(self, grace: float = 10.0) -> None:
-        """SIGTERM the server's process group (uvicorn and its services), then SIGKILL what is left."""
+        """SIGTERM the server's process group (uvicorn and its services), then SIGKILL what is left.
+        A second SIGTERM or Ctrl-C meanwhile waits until the server is gone."""
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
         try:
-            if self.process.poll() is None:
-                os.killpg(self.process.pid, signal.SIGTERM)
-                try:
-                    self.process.wait(grace)
-                except subprocess.TimeoutExpired:
-                    pass
-            os.killpg(self.process.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        self.process.wait(grace)
+            try:
+                if self.process.poll() is None:
+                    os.killpg(self.process.pid, signal.SIGTERM)
+                    try:
+                        self.process.wait(grace)
+                    except subprocess.TimeoutExpired:
+                        pass
+                os.killpg(self.process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            self.process.wait(grace)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+@contextlib.contextmanager
+def prefect_api(home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = False,
+                timeout: float = 300.0) -> Iterator[tuple[str, LocalServer | None]]:
+    """``(PREFECT_API_URL, server)`` for everything started inside: the API the environment
+    names (a server of the user's, Prefect Cloud: ``server`` is None), else a local server
+    started here and stopped on the way out. ``PREFECT_API_URL`` is set while open."""
+    given = os.environ.get("PREFECT_API_URL")
+    if given:
+        yield given, None
+        return
+    server = LocalServer.start(home, host=host, port=port, ui=ui, timeout=timeout)
+    os.environ["PREFECT_API_URL"] = server.api_url
+    try:
+        yield server.api_url, server
+    finally:
+        os.environ.pop("PREFECT_API_URL", None)
+        server.stop()
+
+
+class Terminated(SystemExit):
+    """SIGTERM or SIGHUP, raised in the main thread so that every ``finally`` runs."""
+
+
+@contextlib.contextmanager
+def terminate_raises() -> Iterator[None]:
+    """While open, SIGTERM and SIGHUP raise :class:`Terminated` (exit status 128 + signal) instead
+    of ending the process at once: servers and child processes started inside are stopped by
+    the code that started them. Ctrl-C already raises KeyboardInterrupt."""
+    def handler(signum, frame):
+        raise Terminated(128 + signum)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)

@@ -1,4 +1,5 @@
-"""Flow ``simulate``: the embedded simulator's scenarios, one Prefect task per scenario."""
+"""Flow ``simulate``: each domain's scenarios (simulated, or taken from a real dataset), one Prefect
+task per scenario."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -17,9 +18,10 @@ def simulate_flow(params: str = "params.yaml", root: str = ".") -> dict:
     root_path = Path(root)
     cfg = load_config(root_path / params)
     out = root_path / cfg.simulate.out
+    # a real dataset's folders are checked here, before the stage's run starts or writes anything
+    jobs = stage.plan_jobs(cfg.simulate, root=root_path, out=out, where=cfg.source)
 
     def plan():
-        jobs = stage.plan_jobs(cfg.simulate)
         return jobs, stage.stale_scenarios(jobs, out)
 
     return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_job,

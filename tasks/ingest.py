@@ -1,17 +1,19 @@
 """Single-agent frames from KITTI, nuScenes or Waymo as OPV2V-layout scenarios ``generate`` reads.
 
 Each reader gives :class:`typ.scene.Scene` objects with one agent, ``"ego"``; this module
-groups them into scenarios (a Waymo tfrecord is one sequence; a KITTI or nuScenes keyframe
-stands alone), moves every frame into its LiDAR's sensor frame when the dataset reports
-points in a vehicle frame (Waymo: origin on the ground, so the grid's z range, which is
-relative to the sensor, would miss most points), and writes them with
+groups them into scenarios (a Waymo tfrecord is one sequence, read and written one frame at a
+time; a KITTI or nuScenes keyframe stands alone), moves every frame into its LiDAR's sensor
+frame when the dataset reports points in a vehicle frame (Waymo: origin on the ground, so the
+grid's z range, which is relative to the sensor, would miss most points), and writes them with
 :func:`typ.formats.opv2v.write_scene` so that the generation path is the same as for the
 simulator's target split.
 """
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -19,7 +21,7 @@ from typ.errors import TypError
 from typ.formats.kitti import read_kitti_frame
 from typ.formats.nuscenes import read_nuscenes_frame
 from typ.formats.opv2v import write_scene
-from typ.formats.waymo import read_waymo_frames
+from typ.formats.waymo import iter_waymo_frames
 from typ.io import atomic_path
 from typ.scene import Scene
 
@@ -29,8 +31,23 @@ FORMATS = ("kitti", "nuscenes", "waymo")
 SENSOR_HEIGHT = {"kitti": 0.0, "nuscenes": 0.0, "waymo": 2.2}
 
 
-def read_frames(fmt: str, path: str | Path) -> list[list[Scene]]:
-    """Scenarios (lists of frames in time order) of single-agent data at ``path``.
+@dataclass(frozen=True)
+class WaymoSegment:
+    """One Waymo tfrecord as a scenario: iterating it reads its frames one at a time, in file
+    order, moved to the top LiDAR's frame (a real segment is about 1 GB; no more than a frame
+    is held)."""
+
+    path: Path
+
+    def __iter__(self) -> Iterator[Scene]:
+        name = _name(self.path)
+        for scene in iter_waymo_frames(self.path):
+            yield dataclasses.replace(to_sensor_frame(scene, SENSOR_HEIGHT["waymo"]), scenario=name)
+
+
+def read_frames(fmt: str, path: str | Path) -> list[list[Scene] | WaymoSegment]:
+    """Scenarios (iterables of frames) of single-agent data at ``path``: a list of frames per
+    KITTI / nuScenes keyframe, a :class:`WaymoSegment` per Waymo tfrecord.
 
     kitti: a KITTI object root holding ``training/`` and/or ``testing/`` (velodyne or
     velodyne_reduced, label_2, calib); every frame is its own scenario.
@@ -59,13 +76,7 @@ def read_frames(fmt: str, path: str | Path) -> list[list[Scene]]:
                      for b in sorted(path.glob("*.pcd.bin"))]
     else:
         files = sorted(path.glob("*.tfrecord")) if path.is_dir() else [path]
-        scenarios = []
-        for f in files:
-            frames = sorted(read_waymo_frames(f), key=lambda s: int(s.timestamp))
-            # OpenCOOD sorts timestamps as strings: number the frames so that order is time order
-            scenarios.append([dataclasses.replace(to_sensor_frame(s, SENSOR_HEIGHT["waymo"]),
-                                                  scenario=_name(f), timestamp=f"{i:06d}")
-                              for i, s in enumerate(frames)])
+        scenarios = [WaymoSegment(f) for f in files]
     if not scenarios:
         raise TypError(path, "--input", f"{fmt} frames", "none found")
     return scenarios
@@ -91,14 +102,49 @@ def to_sensor_frame(scene: Scene, height: float) -> Scene:
     return dataclasses.replace(scene, agents={ego.agent_id: view})
 
 
-def write_single_agent(scenarios: list[list[Scene]], root: Path) -> list[Path]:
-    """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml``; returns the folders."""
+def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list[Path]:
+    """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml``, frame by frame as
+    the scenario yields them, numbered ``000000``, ``000001``, ... in time order; returns the folders."""
     folders = []
-    for frames in scenarios:
-        target = root / frames[0].scenario
+    for scenario in scenarios:
+        frames = iter(scenario)
+        first = next(frames)
+        target = root / first.scenario
+        frames = _chain(first, frames)
+        del first
         with atomic_path(target) as tmp:
             tmp.mkdir(parents=True)
+            stamps = []
             for scene in frames:
                 write_scene(dataclasses.replace(scene, scenario=tmp.name), tmp)
+                stamps.append(scene.timestamp)
+                del scene
+            _number_in_time_order(tmp, stamps)
         folders.append(target)
     return folders
+
+
+def _chain(first: Scene, rest: Iterator[Scene]) -> Iterator[Scene]:
+    """``first``, then ``rest``, holding ``first`` no longer than it takes to hand it on."""
+    yield first
+    del first
+    yield from rest
+
+
+def _number_in_time_order(folder: Path, stamps: list[str]) -> None:
+    """Rename each frame's files from its timestamp to its rank in time: OpenCOOD sorts timestamps
+    as strings, and ``000010`` after ``000009`` keeps that order the time order."""
+    if len(set(stamps)) != len(stamps):
+        dup = next(t for t in stamps if stamps.count(t) > 1)
+        raise TypError(folder.name, "timestamp", "one frame per timestamp in a scenario", dup)
+    ranked = sorted(stamps, key=lambda t: (int(t), t) if t.isdigit() else (float("inf"), t))
+    renames = {old: f"{i:06d}" for i, old in enumerate(ranked) if old != f"{i:06d}"}
+    agents = [d for d in folder.iterdir() if d.is_dir()]
+    for stage in ("tmp", "final"):   # through temporary names: a new name may be another frame's old one
+        for old, new in renames.items():
+            for agent in agents:
+                for suffix in (".pcd", ".yaml"):
+                    src = agent / (f"{old}{suffix}" if stage == "tmp" else f".rank-{new}{suffix}")
+                    dst = agent / (f".rank-{new}{suffix}" if stage == "tmp" else f"{new}{suffix}")
+                    if src.exists():
+                        src.rename(dst)

@@ -1,23 +1,32 @@
-"""Stage ``simulate``: write the embedded simulator's scenarios in OPV2V layout.
+"""Stage ``simulate``: each domain's scenarios in OPV2V layout, from the embedded simulator or
+from a real dataset (``simulate.sources``).
 
 Output: ``<out>/<domain>/<split>/<scenario>/<agent_id>/<timestamp>.pcd|.yaml`` (OPV2V layout,
 the ego is the first agent id in sorted order) plus ``<scenario>/_typ.json``, the scenario's
-job key. A scenario whose key is unchanged is skipped; each scenario is written to a
-temporary folder and renamed into place, so a killed run leaves only whole scenarios.
+job key. A real dataset's scenarios (the first ``scenarios[domain][split]`` of each split
+folder, by name) are checked before anything is written (:func:`plan_jobs`: layout, yaml
+keys, pose format, agents; the first bad file is named) and their ``.pcd``/``.yaml`` files are
+hard-linked into the output (copied across file systems), so the later stages read them as
+they read simulated ones. A scenario whose key is unchanged is skipped (a real one's key: its
+files' names, sizes and modification times); each scenario is written to a temporary folder
+and renamed into place, so a killed run leaves only whole scenarios.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
+import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from typ import __version__
 from typ.config import SimulateConfig, as_dict
-from typ.formats.opv2v import write_scene
+from typ.errors import TypError
+from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
 from typ.io import atomic_path, code_digest, hash_obj, read_json_or_none, write_json
 import typ.formats.opv2v
 import typ.formats.pcd
@@ -54,15 +63,89 @@ class ScenarioJob:
     def key(self) -> str:
         return hash_obj({"job": as_dict(self.__dict__), "code": _CODE})
 
+    def describe(self) -> dict:
+        return as_dict(self.__dict__)
 
-def plan_jobs(cfg: SimulateConfig) -> list[ScenarioJob]:
-    """All scenarios the config asks for, each with its own seed derived from ``cfg.seed``.
+    def write(self, tmp: Path) -> dict:
+        """Simulate the scenario into ``tmp``; its counts."""
+        scenes = simulate_scenario(domain=self.domain, seed=self.seed, n_frames=self.n_frames,
+                                   n_agents=self.n_agents, azimuth_step_deg=self.azimuth_step_deg,
+                                   comm_range=self.comm_range, dt=self.dt, scenario=self.name, split=self.split)
+        for scene in scenes:
+            # write_scene writes into a folder named like the scenario: name it after tmp
+            write_scene(dataclasses.replace(scene, scenario=tmp.name), tmp)
+        return {"frames": len(scenes), "views": sum(len(s.agents) for s in scenes),
+                "points": int(sum(len(a.points) for s in scenes for a in s.agents.values())),
+                "boxes": int(sum(len(a.boxes) for s in scenes for a in s.agents.values()))}
 
-    A scenario's seed depends only on (seed, domain, split, index), so adding scenarios to a
-    split leaves the existing ones byte-identical and DVC/our keys skip them.
+
+#: the files of a real scenario that typ reads (camera images and other sidecars stay where they are)
+REAL_SUFFIXES = (".pcd", ".yaml")
+
+
+@dataclass(frozen=True)
+class ImportJob:
+    """One scenario of a real OPV2V-layout dataset, taken into the output as it is."""
+
+    domain: str
+    split: str
+    source: Path
+    #: frames, views, points, boxes, from :func:`typ.formats.opv2v.check_scenario` when planned
+    counts: dict = field(default_factory=dict, compare=False, hash=False)
+
+    @property
+    def name(self) -> str:
+        return self.source.name
+
+    def folder(self, out: Path) -> Path:
+        return out / self.domain / self.split / self.name
+
+    def files(self) -> list[Path]:
+        """The agents' ``.pcd`` and ``.yaml`` files, sorted."""
+        return sorted(f for agent in list_agents(self.source) for f in (self.source / agent).iterdir()
+                      if f.is_file() and f.suffix in REAL_SUFFIXES and not f.name.startswith("."))
+
+    def key(self) -> str:
+        stats = [(str(f.relative_to(self.source)), f.stat().st_size, f.stat().st_mtime_ns) for f in self.files()]
+        return hash_obj({"source": str(self.source.resolve()), "files": stats, "code": _IMPORT_CODE})
+
+    def describe(self) -> dict:
+        return {"domain": self.domain, "split": self.split, "source": str(self.source.resolve())}
+
+    def write(self, tmp: Path) -> dict:
+        """Hard-link (else copy) the scenario's files into ``tmp``; its counts."""
+        counts = self.counts or check_scenario(self.source)
+        for f in self.files():
+            target = tmp / f.relative_to(self.source)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.link(f, target)
+            except OSError:  # another file system, or links not allowed there
+                shutil.copy2(f, target)
+        return dict(counts)
+
+
+#: what decides how a real scenario is checked and laid out
+_IMPORT_CODE = code_digest(typ.formats.opv2v, typ.formats.pcd)
+
+
+def plan_jobs(cfg: SimulateConfig, *, root: Path = Path("."), out: Path | None = None,
+              where: str = "params.yaml") -> list:
+    """All scenarios the config asks for: :class:`ScenarioJob` per simulated scenario, each with its
+    own seed derived from ``cfg.seed``, and :class:`ImportJob` per scenario of a real dataset.
+
+    A simulated scenario's seed depends only on (seed, domain, split, index), so adding scenarios
+    to a split leaves the existing ones byte-identical and DVC/our keys skip them. A real
+    dataset's root (relative to ``root``) is checked here, before anything is written: its
+    split folders, and every scenario not already taken unchanged into ``out`` (the first bad
+    file raises TypError naming it; a split asked for more scenarios than it has names ``where``).
     """
     jobs = []
     for domain in sorted(cfg.scenarios):
+        real = cfg.source_root(domain)
+        if real is not None:
+            jobs += _real_jobs(cfg, domain, root / real, out, where)
+            continue
         for split in sorted(cfg.scenarios[domain]):
             for index in range(cfg.scenarios[domain][split]):
                 tag = int.from_bytes(hashlib.sha256(f"{domain}/{split}".encode()).digest()[:4], "little")
@@ -74,41 +157,51 @@ def plan_jobs(cfg: SimulateConfig) -> list[ScenarioJob]:
     return jobs
 
 
-def stale_scenarios(jobs: list[ScenarioJob], out: Path) -> list[Path]:
+def _real_jobs(cfg: SimulateConfig, domain: str, data_root: Path, out: Path | None, where: str) -> list[ImportJob]:
+    wanted = {split: n for split, n in sorted(cfg.scenarios[domain].items()) if n > 0}
+    jobs = []
+    for split, scenarios in check_root(data_root, list(wanted)).items():
+        if len(scenarios) < wanted[split]:
+            raise TypError(where, f"simulate.scenarios.{domain}.{split}",
+                           f"at most {len(scenarios)} (the scenarios in {data_root / split})", wanted[split])
+        for folder in scenarios[:wanted[split]]:
+            job = ImportJob(domain, split, folder)
+            manifest = read_json_or_none(job.folder(out) / MANIFEST) if out is not None else None
+            if manifest is None or manifest.get("key") != job.key():   # new or changed: check it now
+                job = dataclasses.replace(job, counts=check_scenario(folder))
+            jobs.append(job)
+    return jobs
+
+
+def stale_scenarios(jobs: list, out: Path) -> list[Path]:
     """Scenario folders on disk that no job produces any more (a split shrank)."""
     wanted = {job.folder(out) for job in jobs}
     return sorted(p for p in out.glob("*/*/*") if p.is_dir() and p not in wanted and not p.name.startswith("."))
 
 
-def run_job(job: ScenarioJob, out: Path) -> dict:
-    """Simulate one scenario and write it; returns counts, or ``skipped`` with the reason."""
+def run_job(job: ScenarioJob | ImportJob, out: Path) -> dict:
+    """Simulate or take one scenario and write it; returns counts, or ``skipped`` with the reason."""
     folder = job.folder(out)
+    key = job.key()
+    base = {"scenario": job.name, "domain": job.domain, "split": job.split,
+            "imported": isinstance(job, ImportJob)}
     manifest = read_json_or_none(folder / MANIFEST)
-    if manifest is not None and manifest.get("key") == job.key():
-        return {"scenario": job.name, "domain": job.domain, "split": job.split, "skipped": "unchanged",
-                **manifest["counts"]}
+    if manifest is not None and manifest.get("key") == key:
+        return {**base, "skipped": "unchanged", **manifest["counts"]}
     t0 = time.perf_counter()
-    scenes = simulate_scenario(domain=job.domain, seed=job.seed, n_frames=job.n_frames, n_agents=job.n_agents,
-                               azimuth_step_deg=job.azimuth_step_deg, comm_range=job.comm_range, dt=job.dt,
-                               scenario=job.name, split=job.split)
-    counts = {"frames": len(scenes), "views": sum(len(s.agents) for s in scenes),
-              "points": int(sum(len(a.points) for s in scenes for a in s.agents.values())),
-              "boxes": int(sum(len(a.boxes) for s in scenes for a in s.agents.values()))}
     with atomic_path(folder) as tmp:
         tmp.mkdir(parents=True)
-        for scene in scenes:
-            # write_scene writes into a folder named like the scenario: name it after tmp
-            write_scene(dataclasses.replace(scene, scenario=tmp.name), tmp)
-        write_json(tmp / MANIFEST, {"key": job.key(), "job": as_dict(job.__dict__), "counts": counts,
+        counts = job.write(tmp)
+        write_json(tmp / MANIFEST, {"key": key, "job": job.describe(), "counts": counts,
                                     "typ_version": __version__})
-    return {"scenario": job.name, "domain": job.domain, "split": job.split, "skipped": None,
-            "seconds": time.perf_counter() - t0, **counts}
+    return {**base, "skipped": None, "seconds": time.perf_counter() - t0, **counts}
 
 
 def summarize(results: list[dict]) -> dict:
     """Stage metrics: per domain/split counts plus totals and timings."""
     metrics: dict = {"scenarios": len(results),
-                     "simulated": sum(r["skipped"] is None for r in results),
+                     "simulated": sum(r["skipped"] is None and not r.get("imported") for r in results),
+                     "imported": sum(r["skipped"] is None and bool(r.get("imported")) for r in results),
                      "skipped_unchanged": sum(r["skipped"] == "unchanged" for r in results),
                      "seconds_simulating": round(sum(r.get("seconds", 0.0) for r in results), 3)}
     for r in results:

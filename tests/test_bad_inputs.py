@@ -31,8 +31,8 @@ def snapshot(folder: Path) -> dict[str, bytes | None]:
 
 
 def run_stage_process(argv: list[str], cwd: Path, env: dict) -> tuple[int, str]:
-    """``python -m typ ARGV``; Prefect's and MLflow's state live outside the project (``env``)."""
-    proc = subprocess.run([sys.executable, "-m", "typ", *argv], cwd=cwd, env=env, capture_output=True, text=True,
+    """``python -m cli ARGV``; Prefect's and MLflow's state live outside the project (``env``)."""
+    proc = subprocess.run([sys.executable, "-m", "cli", *argv], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=600)
     return proc.returncode, proc.stderr
 
@@ -62,7 +62,7 @@ def test_bad_input_is_named_and_touches_nothing(case: Case, tmp_path, capsys, re
         message = str(info.value)
         assert ": expected " in message
     elif probe.argv is not None:
-        from typ.cli import main
+        from cli.main import main
 
         try:
             code = main(probe.argv)

@@ -212,3 +212,69 @@ def test_bench_pages_go_to_mlflow_as_one_run(tmp_path, monkeypatch):
     assert run.data.metrics["bench_pages"] == 1
     logged = sorted(Path(a.path).name for a in client.list_artifacts(run_id, "bench"))
     assert logged == ["bench.md", "bench_a.json", "bench_a.md", "bench_a.png"]   # bench pages only
+
+
+def _overhead(noop_wall: float = 3.0) -> dict:
+    full = {"seconds": 410.0, "ran": ["simulate", "vqvae"], "noop": False,
+            "stages": {"simulate": _stage(100.0, cpu=90.0), "vqvae": _stage(300.0, cpu=280.0)},
+            "flow_s": {"simulate": 97.0, "vqvae": 292.0}, "mlflow_start_s": {"simulate": 1.0, "vqvae": 2.0}}
+    noop = {"wall_s": [noop_wall + 1.0, noop_wall, noop_wall + 0.5], "cpu_s": [2.0, 2.5, 3.0]}
+    return {**STAMP, "repeats": 3, "params": "profile: tiny\n", "server_s": 6.0, "full": full,
+            "startup": {"typ --help": [0.2, 0.3, 0.25], "typ check": [0.4, 0.5, 0.3]},
+            "noop": {"simulate, shared server": noop, "voxelize, shared server": noop,
+                     "voxelize, temporary server": {"wall_s": [12.0], "cpu_s": [14.0]}},
+            "baseline": {"rev": "main", "sha": "abc1234", "startup": {"typ --help": [0.3], "typ check": [0.4]},
+                         "noop": {"voxelize, temporary server": {"wall_s": [15.0, 16.0, 14.0], "cpu_s": [15.7]}}}}
+
+
+def test_overhead_fixed_cost_by_hand():
+    result = _overhead()
+    totals = bench.overhead_totals(result)
+    # fixed: simulate 100 - 97 + 1 = 4, vqvae 300 - 292 + 2 = 10, server 6; pipeline wall: 410 + 6
+    assert totals["fixed"] == pytest.approx(20.0) and totals["wall"] == pytest.approx(416.0)
+    assert totals["ratio"] == pytest.approx(20.0 / 416.0) and totals["unmeasured"] == []
+    table = bench.overhead_table(result).splitlines()
+    assert all(line.count("|") == table[0].count("|") for line in table)
+    assert table[2] == "| simulate | 100.0 | 97.0 | 1.00 | 4.0 | 1.0% | 90.0 |"
+    assert table[4] == "| Prefect server start (once) | 6.0 | – | – | 6.0 | 1.4% | – |"
+    assert table[5] == "| dvc (start, hashing, checks) | 10.0 | | | | | |"
+    assert table[6] == "| **pipeline** | **416.0** | | | **20.0** | **4.8%** | 370.0 |"
+    noop = bench.noop_table(result).splitlines()
+    assert noop[2] == "| this branch | simulate, shared server | 3.50 | 3.00 – 4.00 | 2.50 | 0.88 |"
+    assert noop[-1] == "| main (abc1234) | voxelize, temporary server | 15.00 | 14.00 – 16.00 | 15.70 | 3.75 |"
+    verdicts = bench.overhead_verdicts(result)
+    assert "took 3.50 s wall (median of 3) = 0.88 × the 4 s target: met. main's code took 15.00 s" in verdicts[0]
+    assert "(4.3 × as long)" in verdicts[0]
+    assert "20.0 s of the tiny pipeline's 416.0 s wall = 4.8%; target ≤ 10%: met." in verdicts[1]
+    assert "`typ --help` 0.25 s, `typ check` 0.40 s; target < 1 s: met." in verdicts[2]
+    assert "**not met**" in bench.overhead_verdicts(_overhead(noop_wall=4.5))[0]
+    missing = _overhead()
+    del missing["full"]["flow_s"]["vqvae"]       # a stage without a flow run is named, not counted
+    assert bench.overhead_totals(missing)["unmeasured"] == ["vqvae"]
+    assert "(not measured: vqvae)" in bench.overhead_verdicts(missing)[1]
+
+
+def test_overhead_section_renders_and_the_baseline_runs_through_its_own_entry_point(tmp_path):
+    bench.write_report({"overhead": _overhead()}, tmp_path)
+    text = (tmp_path / "bench_pipeline.md").read_text()
+    assert "## Fixed cost per stage: the tiny pipeline, stages with nothing to do, the CLI" in text
+    assert "| main (abc1234) | `typ --help` | 0.30 | 0.30 |" in text
+    (tmp_path / "pyproject.toml").write_text('[project]\nname = "x"\n[project.scripts]\ntyp = "typ.cli:main"\n')
+    cmd = bench.typ_command(tmp_path)
+    assert cmd[1] == "-c" and "from typ.cli import main; sys.exit(main())" in cmd[2]
+
+
+def test_mlflow_start_comes_from_the_stage_runs_tags(tmp_path, monkeypatch):
+    from mlflow.tracking import MlflowClient
+
+    from typ.config import config_from_dict
+    from typ.tracking import stage_run
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlruns.db'}")
+    with stage_run("simulate", config_from_dict({"profile": "tiny"}), root=tmp_path) as run:
+        pass
+    tag = float(MlflowClient(f"sqlite:///{tmp_path / 'mlruns.db'}").get_run(run.run_id).data.tags["typ.mlflow_start_s"])
+    assert 0 < tag < 60
+    import time
+    assert bench.mlflow_starts(tmp_path, since=time.time() - 600) == {"simulate": tag}
+    assert bench.mlflow_starts(tmp_path, since=time.time() + 600) == {}

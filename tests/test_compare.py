@@ -5,7 +5,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from typ.cli import main
+from cli.main import main
 from typ.compare import compare, pareto_front, segments
 from typ.config import config_from_dict
 from typ.tracking import PARENT_ENV, stage_run

@@ -1,7 +1,7 @@
 """Crash safety: ``kill -9`` a stage mid-way, rerun it, and get what an uninterrupted run gets.
 
 A throwaway project (tiny params, 5 target scenarios) runs the stages through the CLI
-(``typ.cli.main``) in subprocesses. Each stage is killed with SIGKILL (its whole process group)
+(``cli.main.main``) in subprocesses. Each stage is killed with SIGKILL (its whole process group)
 as soon as its first output is complete, then rerun:
 
 - simulate and voxelize: after the kill every file under a final name is byte-identical to the
@@ -22,13 +22,12 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 import yaml
 
-from flows.server import free_port
+from flows.server import LocalServer
 
 REPO = Path(__file__).resolve().parents[1]
 TMP_PREFIX = ".tmp-"
@@ -54,43 +53,6 @@ MODEL_ATOL = 1e-6
 
 # --- the helpers both crash and determinism tests use ----------------------------------------
 
-class PrefectServer:
-    """``prefect server start`` (no UI) in its own process group, state under ``home``."""
-
-    def __init__(self, home: Path):
-        port = free_port()
-        self.api_url = f"http://127.0.0.1:{port}/api"
-        home.mkdir(parents=True, exist_ok=True)
-        env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
-               "DO_NOT_TRACK": "1", "OMP_NUM_THREADS": "1"}
-        env.pop("PREFECT_API_URL", None)
-        self.log = home / "server.log"
-        with open(self.log, "wb") as out:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port),
-                 "--no-ui", "--analytics-off"], env=env, stdout=out, stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL, start_new_session=True)
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"prefect server exited: {self.log.read_text()[-2000:]}")
-            try:
-                with urllib.request.urlopen(f"{self.api_url}/health", timeout=2) as response:
-                    if response.status == 200:
-                        return
-            except OSError:
-                time.sleep(0.5)
-        self.stop()
-        raise RuntimeError(f"prefect server not healthy after 300 s: {self.log.read_text()[-2000:]}")
-
-    def stop(self) -> None:
-        try:
-            os.killpg(self.process.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        self.process.wait()
-
-
 _ENV = pytest.StashKey[dict]()
 _UNINTERRUPTED = pytest.StashKey[Path]()
 
@@ -99,7 +61,7 @@ def stage_env(config: pytest.Config, tmp_path_factory) -> dict:
     """Environment for stage processes: one Prefect server and one MLflow database per session."""
     if _ENV not in config.stash:
         home = tmp_path_factory.mktemp("services")
-        server = PrefectServer(home / "prefect")
+        server = LocalServer.start(home / "prefect", ui=False, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
         config.add_cleanup(server.stop)
         config.stash[_ENV] = {
             **os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
@@ -138,7 +100,7 @@ def make_project(root: Path, params: dict = SMALL) -> Path:
 #: runs ``typ run <stage>`` for each stage in turn in one process; stops at the first failure
 DRIVER = """
 import sys
-from typ.cli import main
+from cli.main import main
 root, stages = sys.argv[1], sys.argv[2:]
 for stage in stages:
     code = main(["--root", root, "run", stage])

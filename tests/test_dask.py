@@ -30,7 +30,7 @@ SCRIPT = textwrap.dedent("""
 
     from distributed import LocalCluster
 
-    from typ.cli import main
+    from cli.main import main
 
     if __name__ == "__main__":
         local, dask = sys.argv[1:3]

@@ -81,7 +81,7 @@ def test_served_deployment_runs_on_demand_and_on_schedule(api, tmp_path):
            "MKL_NUM_THREADS": "1", "PREFECT_LOGGING_LEVEL": "INFO"}
     log = tmp_path / "serve.log"
     with open(log, "wb") as out:
-        serve = subprocess.Popen([sys.executable, "-m", "typ", "--root", str(tmp_path), "serve", "--only", "typ-stage",
+        serve = subprocess.Popen([sys.executable, "-m", "cli", "--root", str(tmp_path), "serve", "--only", "typ-stage",
                                   "watch-generate", "--poll-seconds", "1"], cwd=tmp_path, env=env, stdout=out,
                                  stderr=subprocess.STDOUT, start_new_session=True)
     try:

@@ -236,3 +236,94 @@ def test_kitti_format_bin_wrong_dtype(tmp_path):
         read_waymo_kitti_bin(path)
     assert info.value.where == str(path) and info.value.field == "dtype"
     assert "float32 little-endian" in str(info.value)
+
+
+# --- streaming: a segment is read one record at a time -------------------------------------------
+
+SEGMENT_FRAMES, SEGMENT_WIDTH = 32, 2650     # a real TOP range image is 64 x 2650
+
+
+def _segment(path: Path) -> dict:
+    """A large synthetic segment: SEGMENT_FRAMES frames, each a full 64 x 2650 TOP range image of
+    random returns (about 2.7 MB compressed, 170k points), frame i at x = i m, timestamps in
+    reverse file order. Returns sizes in MB."""
+    rng = np.random.default_rng(0)
+    image = np.zeros((64, SEGMENT_WIDTH, 4), dtype=np.float32)
+    image[..., 0] = rng.uniform(2.0, 70.0, image.shape[:2])
+    image[..., 1] = rng.uniform(0.0, 1.5, image.shape[:2])
+    frame = dataset_pb2.Frame()
+    frame.context.name = "segment-synthetic_0000"
+    top = frame.context.laser_calibrations.add()
+    top.name = dataset_pb2.LaserName.TOP
+    top.beam_inclination_min, top.beam_inclination_max = -0.3, 0.05
+    top.extrinsic.transform.extend(np.eye(4).ravel().tolist())
+    laser = frame.lasers.add()
+    laser.name = dataset_pb2.LaserName.TOP
+    laser.ri_return1.range_image_compressed = _matrix(image)
+    with open(path, "wb") as f:
+        for i in range(SEGMENT_FRAMES):
+            frame.timestamp_micros = 1_507_315_488_000_000 + 100_000 * (SEGMENT_FRAMES - i)
+            del frame.pose.transform[:]
+            frame.pose.transform.extend(geometry.pose_to_matrix([float(i), 0.0, 0.0, 0.0, 0.0, 0.0]).ravel().tolist())
+            f.write(_record(frame.SerializeToString()))
+    points_mb = 64 * SEGMENT_WIDTH * 4 * 4 / 2**20
+    return {"file_mb": path.stat().st_size / 2**20, "frame_mb": path.stat().st_size / 2**20 / SEGMENT_FRAMES,
+            "points_mb": points_mb}
+
+
+#: in a fresh process: peak RSS (ru_maxrss, kB) after a one-frame warm-up, and after the whole file
+PEAK = """
+import json, resource, sys
+from pathlib import Path
+mode, path, out = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
+peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+if mode == "read":
+    from typ.formats.waymo import iter_waymo_frames
+    frames = iter_waymo_frames(path)
+    next(frames)                                   # one frame's buffers exist now
+    warm = peak()
+    count = 1 + sum(1 for _ in frames)
+else:
+    from tasks.ingest import read_frames, write_single_agent
+    write_single_agent(read_frames("waymo", path.with_name("one.tfrecord")), out / "warm")
+    warm = peak()
+    count = len(write_single_agent(read_frames("waymo", path), out / "all"))
+print(json.dumps({"warm_mb": warm, "peak_mb": peak(), "count": count}))
+"""
+
+
+def _peak(mode: str, path: Path, out: Path) -> dict:
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", PEAK, mode, str(path), str(out)], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_a_large_segment_is_read_and_ingested_in_memory_of_a_few_frames(tmp_path):
+    from typ.formats.opv2v import list_timestamps, read_meta  # noqa: F401  (reader of the ingested frames)
+
+    path = tmp_path / "segment.tfrecord"
+    sizes = _segment(path)
+    one = next(iter_tfrecord(path))
+    (tmp_path / "one.tfrecord").write_bytes(_record(one))
+    per_frame = sizes["frame_mb"] + sizes["points_mb"]          # a payload and its cloud
+    assert sizes["file_mb"] > 20 * per_frame / 2                  # the file is many frames
+    read = _peak("read", path, tmp_path)
+    assert read["count"] == SEGMENT_FRAMES
+    # the old reader held the whole file and every frame's cloud: file_mb + 32 clouds (~170 MB)
+    assert read["peak_mb"] - read["warm_mb"] < 3 * per_frame, (read, sizes)
+    ingest = _peak("ingest", path, tmp_path / "out")
+    assert ingest["peak_mb"] - ingest["warm_mb"] < 3 * per_frame, (ingest, sizes)
+
+    # written frame by frame, and numbered in time order (the file holds them newest first)
+    folder = tmp_path / "out" / "all" / "segment"
+    stamps = list_timestamps(folder)
+    assert stamps == [f"{i:06d}" for i in range(SEGMENT_FRAMES)]
+    import yaml
+
+    xs = [yaml.safe_load((folder / "ego" / f"{t}.yaml").read_text())["lidar_pose"][0] for t in stamps]
+    assert xs == pytest.approx([float(SEGMENT_FRAMES - 1 - i) for i in range(SEGMENT_FRAMES)])
+    assert not list(folder.rglob(".rank-*"))

@@ -72,7 +72,8 @@ def project(tmp_path_factory):
     _run(["git", "init", "-q"], proj, env)
     _run(["git", "add", "-A"], proj, env)
     _run(["git", "commit", "-qm", "snapshot"], proj, env)
-    first = _run(["dvc", "repro"], proj, env)
+    # as `make run` does: one Prefect server for every stage of the run
+    first = _run([str(VENV_BIN / "typ"), "with-server", "dvc", "repro"], proj, env)
     return proj, env, first
 
 

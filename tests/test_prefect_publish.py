@@ -43,7 +43,7 @@ def test_the_cli_environment_puts_prefects_api_handler_on_typs_loggers(tmp_path)
     out = _python("""
         import os, warnings
         from pathlib import Path
-        from typ.cli import _setup_env
+        from cli.main import _setup_env
         os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"] = "mine"
         _setup_env(Path("."))
         print(os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"])

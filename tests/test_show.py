@@ -11,7 +11,7 @@ from tasks.show import ShowOptions, find_truth, reference_vehicle, scenario_fold
 from tasks.sim_truth import scenario_job, true_view
 from tasks.simulate import ScenarioJob, run_job
 from typ import viz
-from typ.cli import main
+from cli.main import main
 from typ.errors import TypError
 from typ.formats.opv2v import read_scene, write_scene
 from typ.geometry import pose_to_matrix

@@ -8,7 +8,9 @@ expected, e.g. ``params.yaml: voxelize.grid.shape: expected 3 positive integers`
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import types
 import typing
 from dataclasses import dataclass, field
@@ -22,6 +24,8 @@ from typ.errors import TypError
 PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
 PROFILES = ("tiny", "paper")
 DOMAINS = ("source", "target", "real_cav")
+#: ``simulate.sources`` value for a domain the embedded simulator makes
+SIMULATE = "simulate"
 
 
 # ---------------------------------------------------------------- stage blocks
@@ -56,10 +60,20 @@ class SimulateConfig:
     azimuth_step_deg: float
     comm_range: float
     dt: float
-    #: domain -> split -> number of scenarios, e.g. {"target": {"train": 4, "test": 2}}
+    #: domain -> split -> number of scenarios, e.g. {"target": {"train": 4, "test": 2}}; for a domain
+    #: read from a real dataset (``sources``), the first that many scenarios of each split folder
     scenarios: dict[str, dict[str, int]]
     workers: int
     out: str
+    #: domain -> ``simulate`` (the embedded simulator) or the root of a real dataset in OPV2V layout
+    #: (``<root>/<split>/<scenario>/<agent>/<timestamp>.pcd|.yaml``: OPV2V, V2V4Real), relative to
+    #: the project root or absolute; its scenarios are checked at start and linked into ``out``
+    sources: dict[str, str] = field(default_factory=dict)
+
+    def source_root(self, domain: str) -> str | None:
+        """The real dataset root of ``domain``, or None when the simulator makes it."""
+        source = self.sources.get(domain, SIMULATE)
+        return None if source == SIMULATE else source
 
     def check(self, where: str, name: str) -> None:
         _positive(where, f"{name}.frames", self.frames)
@@ -76,6 +90,12 @@ class SimulateConfig:
             for split, count in splits.items():
                 if count < 0:
                     raise TypError(where, f"{name}.scenarios.{domain}.{split}", "a count >= 0", count)
+        for domain, source in self.sources.items():
+            if domain not in DOMAINS:
+                raise TypError(where, f"{name}.sources.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
+            if not source.strip():
+                raise TypError(where, f"{name}.sources.{domain}",
+                               f"{SIMULATE!r} or the path of a dataset root in OPV2V layout", source)
 
 
 @dataclass(frozen=True)
@@ -632,10 +652,17 @@ def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict |
 
 
 def profile_defaults(profile: str) -> dict:
-    data = yaml.safe_load(PROFILES_FILE.read_text())
+    data = _profiles()
     if profile not in data:
         raise TypError(PROFILES_FILE, "profile", f"one of {sorted(data)}", profile)
-    return data[profile]
+    return copy.deepcopy(data[profile])
+
+
+@functools.lru_cache(maxsize=1)
+def _profiles() -> dict:
+    # parsed once per process (a stage loads its params three times: CLI, stage, flow), with
+    # libyaml when PyYAML has it: the pure-Python parser takes a tenth of a second on this file
+    return yaml.load(PROFILES_FILE.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
 def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "") -> dict:

@@ -1,6 +1,6 @@
 """Device, precision and data-parallel training for typ's training stages.
 
-``torchrun --nproc_per_node N -m typ run <stage>`` starts N copies of a training stage. Each
+``torchrun --nproc_per_node N -m cli run <stage>`` starts N copies of a training stage. Each
 joins the process group from torchrun's environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``,
 ``MASTER_ADDR``/``MASTER_PORT``): gloo on the CPU, nccl on CUDA. Every rank builds the same
 model from the same seed and draws the same global batch from ``batch_rng(seed, step)``;

@@ -39,7 +39,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
@@ -159,6 +158,8 @@ def cast_surface(vertices, triangles, spec: SensorSpec) -> np.ndarray:
         raise TypError(_WHERE, "spec", "a SensorSpec (e.g. domain_spec(name).sensor)", type(spec).__name__)
     if len(triangles) == 0:
         return np.zeros((0, 3), dtype=np.float32)
+    import open3d as o3d  # here, not at import: loading it takes a second
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))

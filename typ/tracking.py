@@ -15,7 +15,9 @@ import contextlib
 import logging
 import os
 import re
+import socket
 import subprocess
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -58,29 +60,96 @@ def git_commit(root: Path) -> str:
         return "unknown"
 
 
-def _experiment_id(mlflow, name: str, root: Path) -> str:
-    exp = mlflow.get_experiment_by_name(name)
+def _experiment_id(client, name: str, root: Path) -> str:
+    exp = client.get_experiment_by_name(name)
     if exp is not None:
         return exp.experiment_id
     try:
-        return mlflow.create_experiment(name, artifact_location=(root / "mlartifacts").resolve().as_uri())
+        return client.create_experiment(name, artifact_location=(root / "mlartifacts").resolve().as_uri())
     except Exception:  # another process created it first
-        return mlflow.get_experiment_by_name(name).experiment_id
+        return client.get_experiment_by_name(name).experiment_id
+
+
+def is_main_process() -> bool:
+    """True unless this is a torchrun rank other than 0. Asked without importing torch: a
+    process that never loaded :mod:`typ.distributed` (the per-scene stages) is alone."""
+    dist = sys.modules.get("typ.distributed")
+    return dist is None or dist.is_main()
+
+
+#: run tags that say which process a run belongs to, so a later stage can tell that it died
+PID_TAG, HOST_TAG, STARTED_TAG = "typ.pid", "typ.host", "typ.pid_started"
+#: run tag: seconds from entering :func:`stage_run` to the run's creation (MLflow's start-up cost)
+START_TAG = "typ.mlflow_start_s"
+
+
+def _process_tags() -> dict[str, str]:
+    return {PID_TAG: str(os.getpid()), HOST_TAG: socket.gethostname(), STARTED_TAG: f"{_started(os.getpid())}"}
+
+
+def _started(pid: int) -> float | None:
+    """When process ``pid`` started (s since the epoch, as psutil gives it); None when no such process."""
+    import psutil
+
+    try:
+        return round(psutil.Process(pid).create_time(), 2)
+    except (psutil.NoSuchProcess, psutil.ZombieProcess):
+        return None
+    except psutil.Error:  # alive but not ours to inspect
+        return -1.0
+
+
+def process_gone(tags: dict[str, str]) -> bool:
+    """Whether the process a run's tags name has ended: same host, and no process with that pid,
+    or one started at another time (the pid was reused). Runs without the tags (from before
+    typ recorded them) and runs of other hosts are never judged gone: nobody here can know."""
+    if tags.get(HOST_TAG) != socket.gethostname() or not tags.get(PID_TAG, "").isdigit():
+        return False
+    started = _started(int(tags[PID_TAG]))
+    if started is None:
+        return True
+    recorded = tags.get(STARTED_TAG, "None")
+    return started != -1.0 and recorded != "None" and abs(started - float(recorded)) > 0.05
+
+
+def mark_killed_runs(client, experiment_id: str, stage: str) -> list[str]:
+    """Set the RUNNING runs of ``stage`` whose process is gone (kill -9, a power cut) to KILLED;
+    returns their ids. A killed process cannot end its own run, and the UI would show it
+    running forever."""
+    stale = []
+    runs = client.search_runs([experiment_id], filter_string=f"tags.`typ.stage` = '{stage}' "
+                              "and attributes.status = 'RUNNING'", max_results=1000)
+    for run in runs:
+        if process_gone(run.data.tags):
+            client.set_tag(run.info.run_id, "typ.killed", f"process {run.data.tags[PID_TAG]} on "
+                           f"{run.data.tags[HOST_TAG]} ended without closing its run (seen {time.ctime()})")
+            client.set_terminated(run.info.run_id, status="KILLED")
+            log.warning("MLflow run %s of %s: its process %s is gone; marked KILLED", run.info.run_id, stage,
+                        run.data.tags[PID_TAG])
+            stale.append(run.info.run_id)
+    return stale
 
 
 @contextlib.contextmanager
 def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["StageRun"]:
-    """One MLflow run for one stage execution: params of the stage's block, tags, then the body."""
-    import mlflow
+    """One MLflow run for one stage execution: params of the stage's block, tags, then the body.
 
-    from typ.distributed import is_main
-
-    if not is_main():
+    Before it starts, earlier runs of the stage that a killed process left RUNNING are marked
+    KILLED (:func:`mark_killed_runs`); a body ended by SIGTERM or Ctrl-C ends its run KILLED.
+    """
+    if not is_main_process():
         yield NullRun()
         return
+    t0 = time.perf_counter()
+    import mlflow
+    from mlflow.tracking import MlflowClient
+
     root = Path(root)
-    mlflow.set_tracking_uri(tracking_uri(cfg, root))
-    exp_id = _experiment_id(mlflow, cfg.tracking.experiment, root)
+    uri = tracking_uri(cfg, root)
+    mlflow.set_tracking_uri(uri)
+    client = MlflowClient(uri)
+    exp_id = _experiment_id(client, cfg.tracking.experiment, root)
+    mark_killed_runs(client, exp_id, stage)
     block = cfg.block(stage) if stage in cfg.STAGES else cfg
     params = {f"{stage}.{k}": v for k, v in flatten(block).items()} if stage in cfg.STAGES else flatten(block)
     tags = {
@@ -88,22 +157,36 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["S
         "typ.profile": cfg.profile,
         "typ.params_hash": hash_obj(as_dict(block))[:16],
         "mlflow.source.git.commit": git_commit(root),
+        "mlflow.runName": stage,
         "dvc.stage": stage,
+        **_process_tags(),
         **{tag: os.environ[env] for env, tag in DVC_EXP_TAGS.items() if os.environ.get(env)},
     }
-    nested = mlflow.active_run() is not None
-    parent = os.environ.get(PARENT_ENV)
-    if parent and not nested:
+    active = mlflow.active_run()
+    parent = active.info.run_id if active is not None else os.environ.get(PARENT_ENV)
+    if parent:
         tags["mlflow.parentRunId"] = parent
+    # what MLflow costs a stage before its work starts (import, store, the stale-run check)
+    tags[START_TAG] = f"{time.perf_counter() - t0:.3f}"
+    # the client, not mlflow.start_run: that one also resolves every context provider (GitPython,
+    # notebooks, Databricks), a few tenths of a second per stage for tags typ sets itself
+    run = client.create_run(exp_id, run_name=stage, tags=tags)
+    run_id = run.info.run_id
+    from mlflow.entities import Param
+
+    client.log_batch(run_id, params=[Param(k, _short(v)) for k, v in {**params, "profile": cfg.profile}.items()],
+                     synchronous=True)
     # None leaves the other stages to MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING
     system_metrics = True if stage in TRAINING_STAGES else None
     if system_metrics:  # its start/stop INFO lines would be all a stage prints
         logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
-    with mlflow.start_run(experiment_id=exp_id, run_name=stage, tags=tags, nested=nested,
-                          log_system_metrics=system_metrics) as run:
-        mlflow.log_params({k: _short(v) for k, v in params.items()})
-        mlflow.log_param("profile", cfg.profile)
-        yield StageRun(mlflow, run.info.run_id)
+    # active for this thread, so that mlflow's fluent calls (log_model) and nested stages see it
+    with mlflow.start_run(run_id=run_id, nested=active is not None, log_system_metrics=system_metrics):
+        try:
+            yield StageRun(mlflow, run_id)
+        except (KeyboardInterrupt, SystemExit):
+            mlflow.end_run("KILLED")
+            raise
 
 
 class StageRun:

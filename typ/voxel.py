@@ -18,11 +18,11 @@ happens to round (plain floor division misplaces about 1 in 10 exact edges of PA
 """
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from typ import geometry
@@ -131,8 +131,16 @@ PAPER_GRID = Grid((-51.2, 51.2), (-51.2, 51.2), (-3.0, 1.0), (512, 512, 20))
 TINY_GRID = Grid((-51.2, 51.2), (-51.2, 51.2), (-3.0, 1.0), (128, 128, 8))
 
 
-@numba.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-def _scatter(points, lo, hi, inv, ex, ey, ez, flat, nx, ny, nz):
+@functools.cache
+def _scatter():
+    """:func:`_scatter_points` compiled, on first use: importing numba takes a few tenths of a
+    second that a stage which voxelizes nothing (every scene unchanged) should not pay."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")(_scatter_points)
+
+
+def _scatter_points(points, lo, hi, inv, ex, ey, ez, flat, nx, ny, nz):
     """Set ``flat[(i*ny + j)*nz + k]`` for every in-range point; returns the non-finite row count."""
     lx, ly, lz = lo[0], lo[1], lo[2]
     hx, hy, hz = hi[0], hi[1], hi[2]
@@ -185,8 +193,8 @@ def voxelize(points, grid: Grid) -> np.ndarray:
     arr = _check_points(points)
     out = np.zeros(grid.shape, dtype=bool)
     lo, hi = grid.lower, grid.upper
-    bad = _scatter(arr, lo, hi, 1.0 / grid.voxel_size, grid.edges(0), grid.edges(1), grid.edges(2),
-                   out.reshape(-1), *grid.shape)
+    bad = _scatter()(arr, lo, hi, 1.0 / grid.voxel_size, grid.edges(0), grid.edges(1), grid.edges(2),
+                     out.reshape(-1), *grid.shape)
     if bad:
         raise TypError(None, "points", "finite x, y, z (no NaN/Inf)", f"{bad} rows with NaN/Inf")
     return out

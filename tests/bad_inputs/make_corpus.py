@@ -46,8 +46,8 @@ GRID = Grid((-8.0, 8.0), (-8.0, 8.0), (-2.0, 2.0), (16, 16, 4))
 class Probe:
     """How to feed one bad input to typ, and what the error must say.
 
-    Exactly one of ``call`` (must raise :class:`typ.errors.TypError`), ``argv`` (``typ.cli.main``
-    in this process: exit code 2) or ``process`` (``python -m typ`` in a subprocess: exit code 2;
+    Exactly one of ``call`` (must raise :class:`typ.errors.TypError`), ``argv`` (``cli.main.main``
+    in this process: exit code 2) or ``process`` (``python -m cli`` in a subprocess: exit code 2;
     for cases that start a stage's flow) is set. ``says``: substrings of the message (for the CLI,
     of stderr). ``watch``: the folder whose files and bytes must be the same before and after
     (the case's whole folder by default): previous outputs untouched, no partial or temporary file.

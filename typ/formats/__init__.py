@@ -13,10 +13,11 @@ from typ.formats.kitti import read_calib, read_kitti_frame, read_labels
 from typ.formats.nuscenes import read_nuscenes_frame
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_meta, read_scene, write_scene
 from typ.formats.pcd import read_pcd, write_pcd
-from typ.formats.waymo import crc32c, iter_tfrecord, masked_crc32c, read_waymo_frames, read_waymo_kitti_bin
+from typ.formats.waymo import (crc32c, iter_tfrecord, iter_waymo_frames, masked_crc32c, read_waymo_frames,
+                               read_waymo_kitti_bin)
 
 __all__ = [
     "crc32c", "iter_tfrecord", "list_agents", "list_scenarios", "list_timestamps", "masked_crc32c",
     "read_bin", "read_calib", "read_kitti_frame", "read_labels", "read_meta", "read_nuscenes_frame",
-    "read_pcd", "read_scene", "read_waymo_frames", "read_waymo_kitti_bin", "write_pcd", "write_scene",
+    "read_pcd", "read_scene", "iter_waymo_frames", "read_waymo_frames", "read_waymo_kitti_bin", "write_pcd", "write_scene",
 ]

@@ -29,7 +29,7 @@ import yaml
 
 from typ import geometry
 from typ.errors import TypError
-from typ.formats.pcd import read_pcd, write_pcd
+from typ.formats.pcd import read_pcd, read_pcd_header, write_pcd
 from typ.io import write_text
 from typ.scene import AgentView, Scene
 
@@ -105,6 +105,55 @@ def read_scene(scenario_dir: str | os.PathLike, timestamp: str, *, agents: list[
                                  boxes=boxes, box_labels=labels, box_ids=box_ids,
                                  semantics=semantics, where=str(yaml_path))
     return Scene(scenario=s.name, timestamp=str(timestamp), agents=views, dataset=dataset, split=split)
+
+
+def check_root(root: str | os.PathLike, splits: list[str]) -> dict[str, list[Path]]:
+    """A dataset root in OPV2V layout, ``root/<split>/<scenario>/``: split -> its scenario folders.
+
+    Each split in ``splits`` must be a folder holding at least one scenario; raises TypError
+    naming the first folder that is not. The scenarios themselves: :func:`check_scenario`.
+    """
+    r = Path(root)
+    if not r.is_dir():
+        raise TypError(r, "root", "a folder with one sub-folder per split (OPV2V layout: train/, test/, ...)",
+                       "not a folder")
+    found = {}
+    for split in splits:
+        folder = r / split
+        if not folder.is_dir():
+            raise TypError(folder, "split", f"a folder of scenarios (the split {split!r} of {r})", "no such folder")
+        found[split] = list_scenarios(folder)
+        if not found[split]:
+            raise TypError(folder, "split", "at least one scenario folder", "none")
+    return found
+
+
+def check_scenario(scenario_dir: str | os.PathLike) -> dict[str, int]:
+    """Check one scenario as :func:`read_scene` would read it, without reading the point clouds.
+
+    At least one agent folder; the ego's timestamps (at least one); for every agent and each of
+    those timestamps, in :func:`list_agents` order, a yaml with ``lidar_pose`` (six finite numbers
+    ``[x, y, z, roll, yaw, pitch]``) and ``vehicles`` (each with location, angle, extent, center),
+    and a PCD beside it whose header holds x, y, z. The first bad file raises TypError naming it.
+    Returns counts: frames, views, points (from the PCD headers), boxes.
+    """
+    s = Path(scenario_dir)
+    agents = list_agents(s)
+    stamps = list_timestamps(s)
+    if not stamps:
+        raise TypError(s / agents[0], "timestamps", "at least one <timestamp>.yaml (the ego's frames)", "none")
+    counts = {"frames": len(stamps), "views": 0, "points": 0, "boxes": 0}
+    for agent in agents:
+        for ts in stamps:
+            yaml_path = s / agent / f"{ts}.yaml"
+            doc = _load_yaml(yaml_path)
+            lidar_pose = _numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
+            boxes, _, _ = _vehicle_boxes(yaml_path, doc, lidar_pose)
+            header = read_pcd_header(yaml_path.with_suffix(".pcd"))
+            counts["views"] += 1
+            counts["points"] += header["points"]
+            counts["boxes"] += len(boxes)
+    return counts
 
 
 def read_meta(scenario_dir: str | os.PathLike, agent: str, timestamp: str) -> dict[str, object]:

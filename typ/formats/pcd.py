@@ -62,6 +62,34 @@ def read_pcd(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     return _to_points(p, columns, n)
 
 
+def read_pcd_header(path: str | os.PathLike, *, limit: int = 1 << 16) -> dict:
+    """A PCD file's header, checked as :func:`read_pcd` checks it, without reading the points:
+    ``{"points": N, "fields": [names], "data": "ascii" | "binary" | "binary_compressed"}``.
+    For binary data, the file must also be long enough for its N points."""
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(limit)
+            size = os.fstat(f.fileno()).st_size
+    except FileNotFoundError:
+        raise TypError(p, "file", "an existing .pcd file", "no such file") from None
+    except OSError as exc:
+        raise TypError(p, "file", "a readable .pcd file", f"{type(exc).__name__}: {exc.strerror}") from None
+    header, body = _split_header(p, head)
+    fields = _parse_fields(p, header)
+    n = _int_entry(p, header, "POINTS") if "POINTS" in header else \
+        _int_entry(p, header, "WIDTH") * _int_entry(p, header, "HEIGHT")
+    kind = header["DATA"][0].lower() if header["DATA"] else ""
+    if kind not in _DATA_KINDS:
+        raise TypError(p, "DATA", f"one of {_DATA_KINDS}", header["DATA"])
+    if kind == "binary":
+        row = sum(np.dtype(t).itemsize * c for _, t, c in fields)
+        have = size - (len(head) - len(body))
+        if have < n * row:
+            raise TypError(p, "DATA", f"{n} points x {row} bytes = {n * row} bytes", f"{have} bytes (truncated)")
+    return {"points": n, "fields": [name for name, _, _ in fields], "data": kind}
+
+
 def write_pcd(path: str | os.PathLike, points: np.ndarray, *, semantics: np.ndarray | None = None) -> None:
     """Write ``(N, 4)`` ``[x, y, z, intensity in [0, 1]]`` (+ ``(N,)`` uint8 semantics) as binary PCD, atomically.
 

@@ -102,41 +102,65 @@ def masked_crc32c(data: bytes) -> int:
 
 
 def iter_tfrecord(path: str | os.PathLike) -> Iterator[bytes]:
-    """Yield each record's payload; TypError (file, record index, byte offset) on a bad CRC or truncation."""
+    """Yield each record's payload, reading the file one record at a time (a real segment is about
+    1 GB: only the current record is in memory); TypError (file, record index, byte offset) on a
+    bad CRC or truncation."""
     p = Path(path)
     try:
-        raw = p.read_bytes()
+        f = open(p, "rb")
     except FileNotFoundError:
         raise TypError(p, "file", "an existing TFRecord file", "no such file") from None
     except OSError as exc:
         raise TypError(p, "file", "a readable TFRecord file", f"{type(exc).__name__}: {exc.strerror}") from None
-    offset, index = 0, 0
-    while offset < len(raw):
-        where = f"record {index} at byte offset {offset}"
-        if len(raw) - offset < 12:
-            raise TypError(p, where, "a 12-byte record header (length, length crc)",
-                           f"{len(raw) - offset} bytes left (truncated file)")
-        length_bytes = raw[offset:offset + 8]
-        (length,), (length_crc,) = struct.unpack("<Q", length_bytes), struct.unpack("<I", raw[offset + 8:offset + 12])
-        if masked_crc32c(length_bytes) != length_crc:
-            raise TypError(p, f"{where}: length crc", f"masked crc32c {masked_crc32c(length_bytes):#010x}",
-                           f"{length_crc:#010x} (corrupt header)")
-        start = offset + 12
-        if len(raw) - start < length + 4:
-            raise TypError(p, where, f"{length} payload bytes + 4 crc bytes",
-                           f"{len(raw) - start} bytes left (truncated file)")
-        payload = raw[start:start + length]
-        (payload_crc,) = struct.unpack("<I", raw[start + length:start + length + 4])
-        expected = masked_crc32c(payload)
-        if expected != payload_crc:
-            raise TypError(p, f"{where}: payload crc", f"masked crc32c {expected:#010x}",
-                           f"{payload_crc:#010x} (corrupt payload of {length} bytes at offset {start})")
-        yield payload
-        offset, index = start + length + 4, index + 1
+    with f:
+        size = os.fstat(f.fileno()).st_size
+        offset, index = 0, 0
+        while offset < size:
+            where = f"record {index} at byte offset {offset}"
+            head = _read_exactly(f, p, 12)
+            if len(head) < 12:
+                raise TypError(p, where, "a 12-byte record header (length, length crc)",
+                               f"{len(head)} bytes left (truncated file)")
+            length_bytes = head[:8]
+            (length,), (length_crc,) = struct.unpack("<Q", length_bytes), struct.unpack("<I", head[8:12])
+            if masked_crc32c(length_bytes) != length_crc:
+                raise TypError(p, f"{where}: length crc", f"masked crc32c {masked_crc32c(length_bytes):#010x}",
+                               f"{length_crc:#010x} (corrupt header)")
+            start = offset + 12
+            if size - start < length + 4:   # checked before reading: a corrupt length is never allocated
+                raise TypError(p, where, f"{length} payload bytes + 4 crc bytes",
+                               f"{size - start} bytes left (truncated file)")
+            payload = _read_exactly(f, p, length)
+            tail = _read_exactly(f, p, 4)
+            if len(payload) < length or len(tail) < 4:  # the file shrank while being read
+                raise TypError(p, where, f"{length} payload bytes + 4 crc bytes",
+                               f"{len(payload) + len(tail)} bytes (truncated file)")
+            (payload_crc,) = struct.unpack("<I", tail)
+            expected = masked_crc32c(payload)
+            if expected != payload_crc:
+                raise TypError(p, f"{where}: payload crc", f"masked crc32c {expected:#010x}",
+                               f"{payload_crc:#010x} (corrupt payload of {length} bytes at offset {start})")
+            yield payload
+            del payload
+            offset, index = start + length + 4, index + 1
+
+
+def _read_exactly(f, p: Path, n: int) -> bytes:
+    try:
+        return f.read(n)
+    except OSError as exc:
+        raise TypError(p, "file", "a readable TFRecord file", f"{type(exc).__name__}: {exc.strerror}") from None
 
 
 def read_waymo_frames(path: str | os.PathLike) -> list[Scene]:
-    """Every Frame in a Waymo tfrecord as a single-agent Scene (agent ``"ego"``, vehicle frame).
+    """Every Frame of a Waymo tfrecord (all in memory: for a whole segment, iterate
+    :func:`iter_waymo_frames` instead)."""
+    return list(iter_waymo_frames(path))
+
+
+def iter_waymo_frames(path: str | os.PathLike) -> Iterator[Scene]:
+    """Each Frame of a Waymo tfrecord as a single-agent Scene (agent ``"ego"``, vehicle frame), in
+    file order, one at a time: memory stays at about one frame whatever the file's size.
 
     points: (N, 4) float32 ``[x, y, z, tanh(intensity)]`` from the range images of every laser,
     first and second returns, pixels with range > 0. A frame without range images (labels-only
@@ -144,17 +168,19 @@ def read_waymo_frames(path: str | os.PathLike) -> list[Scene]:
     boxes: ``laser_labels`` (K, 7) ``[center_x, center_y, center_z, length, width, height, heading]``;
     labels are the type names lower-cased without ``TYPE_`` (vehicle, pedestrian, sign, cyclist);
     box ids are a stable 63-bit hash of the label's string id.
-    A file with no record, and NaN/Inf range or intensity pixels, raise TypError.
+    A file with no record, and NaN/Inf range or intensity pixels, raise TypError (the frames
+    before a bad one have been yielded by then).
     """
     from waymo_open_dataset import dataset_pb2, label_pb2
 
-    scenes = []
+    count = 0
     for index, payload in enumerate(iter_tfrecord(path)):
         where = f"{path} (frame {index})"
         try:
             frame = dataset_pb2.Frame.FromString(payload)
         except Exception as exc:  # protobuf's DecodeError has no stable import path across versions
             raise TypError(where, "payload", "a serialized waymo.open_dataset.Frame", type(exc).__name__) from None
+        del payload
         pose = _transform(where, "pose.transform", frame.pose.transform)
         boxes = np.array([[lb.box.center_x, lb.box.center_y, lb.box.center_z,
                            lb.box.length, lb.box.width, lb.box.height, lb.box.heading]
@@ -163,11 +189,14 @@ def read_waymo_frames(path: str | os.PathLike) -> list[Scene]:
         ids = np.array([_stable_id(lb.id) for lb in frame.laser_labels], dtype=np.int64)
         view = AgentView(agent_id="ego", points=_frame_points(where, frame, pose, dataset_pb2), pose=pose,
                          boxes=boxes, box_labels=labels, box_ids=ids, where=where)
-        scenes.append(Scene(scenario=frame.context.name, timestamp=str(frame.timestamp_micros),
-                            agents={"ego": view}, dataset="waymo"))
-    if not scenes:
+        scene = Scene(scenario=frame.context.name, timestamp=str(frame.timestamp_micros), agents={"ego": view},
+                      dataset="waymo")
+        del frame, view
+        count += 1
+        yield scene
+        del scene  # while the caller asks for the next frame, hold none
+    if not count:
         raise TypError(path, "records", "at least one Frame record", "an empty file")
-    return scenes
 
 
 def read_waymo_kitti_bin(path: str | os.PathLike) -> np.ndarray:

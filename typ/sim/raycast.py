@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 
 from typ.errors import TypError
 from typ.scene import SEMANTIC_CODE
@@ -55,6 +54,8 @@ def _scene(world: TownFrame, exclude_vehicle_id: int | None):
         if key not in set(world.vehicle_ids.tolist()):
             raise TypError("typ.sim.cast", "exclude_vehicle_id", "the id of a vehicle in this frame or None", key)
         keep = keep[world.vehicle_ids != key]
+    import open3d as o3d  # here, not at import: a scenario with nothing to do skips its second of loading
+
     scene = o3d.t.geometry.RaycastingScene()
     static_id = scene.add_triangles(o3d.core.Tensor(world.town.vertices), o3d.core.Tensor(world.town.triangles))
     vehicle_id = -1
@@ -88,6 +89,8 @@ def cast(town_at_frame: TownFrame, pose: np.ndarray, spec: SensorSpec, rng: np.r
     rays = np.empty((len(d_sensor), 6), dtype=np.float32)
     rays[:, :3] = pose[:3, 3]
     rays[:, 3:] = d_sensor @ pose[:3, :3].T
+    import open3d as o3d
+
     hit = scene.cast_rays(o3d.core.Tensor(rays))
     t = hit["t_hit"].numpy()
     valid = np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range)

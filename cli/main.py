@@ -6,16 +6,16 @@ Exit codes: 0 done, 2 bad input (params, files, arguments: the message names whi
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
+import signal
+import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from typ.errors import TypError
-
 from typ.config import Config
+from typ.errors import TypError
 
 STAGES = Config.STAGES
 #: loggers of typ's own code (typ.*, tasks.*), included in Prefect's logging by :func:`_setup_env`
@@ -67,20 +67,68 @@ def _cmd_run(args) -> int:
 
     cfg = load_config(root / args.params)  # fail on bad params before Prefect starts
     _setup_env(root)
-    from typ import distributed
+    from flows.server import prefect_api, terminate_raises
 
-    distributed.setup(cfg.runtime.device, cfg.runtime.precision, where=cfg.source)
-    from flows.pipeline import pipeline_flow, run_stage
+    # `all`: one Prefect API for every stage (a local server unless PREFECT_API_URL names one);
+    # one stage: the API the environment names, else Prefect's temporary server for this process
+    with terminate_raises(), (prefect_api(Path(os.environ["PREFECT_HOME"])) if args.stage == "all"
+                              else contextlib.nullcontext()):
+        from flows.pipeline import WITHOUT_TORCH, pipeline_flow, run_stage
 
-    quiet_bad_input_tracebacks()
-    try:
-        if args.stage == "all":
-            pipeline_flow(params=args.params, root=str(root), task_runner=args.runner, address=args.address)
-        else:
-            run_stage(args.stage, params=args.params, root=str(root), task_runner=args.runner, address=args.address)
-    finally:
-        distributed.teardown()
+        uses_torch = args.stage not in WITHOUT_TORCH
+        if uses_torch:  # a per-scene stage that never touches torch does not pay for importing it
+            from typ import distributed
+
+            distributed.setup(cfg.runtime.device, cfg.runtime.precision, where=cfg.source)
+        quiet_bad_input_tracebacks()
+        try:
+            if args.stage == "all":
+                pipeline_flow(params=args.params, root=str(root), task_runner=args.runner, address=args.address)
+            else:
+                run_stage(args.stage, params=args.params, root=str(root), task_runner=args.runner,
+                          address=args.address)
+        finally:
+            if uses_torch:
+                distributed.teardown()
     return 0
+
+
+def _cmd_with_server(args) -> int:
+    if not args.cmd:
+        raise TypError("typ with-server", "COMMAND", "a command to run, e.g. `typ with-server dvc repro`", "nothing")
+    root = Path(args.root).resolve()
+    _setup_env(root)
+    from flows.server import prefect_api, terminate_raises
+
+    with terminate_raises(), prefect_api(Path(os.environ["PREFECT_HOME"])) as (url, server):
+        if server is not None:
+            print(f"typ: Prefect server {url} for `{' '.join(args.cmd)}` (log {server.log})", file=sys.stderr,
+                  flush=True)
+        return run_child(args.cmd)
+
+
+def run_child(cmd: list[str], *, grace: float = 60.0) -> int:
+    """Run ``cmd`` in its own process group and return its exit status (128 + signal when a
+    signal ended it). When this process is interrupted (Ctrl-C, SIGTERM), the whole group gets
+    the signal (dvc and the stage it runs), then SIGKILL after ``grace`` seconds."""
+    try:
+        proc = subprocess.Popen(cmd, start_new_session=True)
+    except OSError as exc:
+        raise TypError("typ with-server", "COMMAND", "a program on PATH", f"{cmd[0]}: {exc.strerror}") from None
+    try:
+        rc = proc.wait()
+    except BaseException as exc:
+        sig = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        try:
+            proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        raise
+    return 128 - rc if rc < 0 else rc
 
 
 def _cmd_serve(args) -> int:
@@ -89,22 +137,19 @@ def _cmd_serve(args) -> int:
     root = Path(args.root).resolve()
     load_config(root / args.params)  # fail on bad params before a server starts
     _setup_env(root)
-    server = None
-    if not os.environ.get("PREFECT_API_URL"):
-        from flows.server import LocalServer
+    from flows.server import prefect_api, terminate_raises
 
-        server = LocalServer.start(Path(os.environ["PREFECT_HOME"]), host=args.host, port=args.port)
-        os.environ["PREFECT_API_URL"] = server.api_url  # before Prefect is imported: it reads this once
-        print(f"Prefect server {server.ui_url} (state in {os.environ['PREFECT_HOME']}, log {server.log})", flush=True)
-    else:
-        print(f"Prefect API {os.environ['PREFECT_API_URL']}", flush=True)
-    try:
+    # SIGTERM at any moment, also while the server starts, stops the server started here
+    with terminate_raises(), prefect_api(Path(os.environ["PREFECT_HOME"]), host=args.host, port=args.port,
+                                         ui=True) as (url, server):
+        if server is not None:
+            print(f"Prefect server {server.ui_url} (state in {os.environ['PREFECT_HOME']}, log {server.log})",
+                  flush=True)
+        else:
+            print(f"Prefect API {url}", flush=True)
         from flows.deploy import serve
 
         serve(root, args.params, only=args.only, poll_seconds=args.poll_seconds)
-    finally:
-        if server is not None:
-            server.stop()
     return 0
 
 
@@ -190,6 +235,8 @@ def _numbers(text: str, flag: str, counts: tuple[int, ...]) -> tuple[float, ...]
 
 
 def _cmd_edit(args) -> int:
+    import numpy as np
+
     from tasks.edit import BoxEdit
 
     move = {}
@@ -228,6 +275,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "or Dask (a LocalCluster of <workers> processes, or --address)")
     p.add_argument("--address", help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (with --runner dask)")
     p.set_defaults(fn=_cmd_run)
+    p = sub.add_parser("with-server", help="run COMMAND (e.g. dvc repro, dvc exp run) with one Prefect API for every "
+                                           "stage it starts: a local server, stopped when COMMAND ends, unless "
+                                           "PREFECT_API_URL names one")
+    p.add_argument("cmd", nargs=argparse.REMAINDER, metavar="COMMAND ...")
+    p.set_defaults(fn=_cmd_with_server)
     p = sub.add_parser("serve", help="serve the Prefect deployments (scheduled pipeline, watched-folder generate); "
                                      "starts a local Prefect server unless PREFECT_API_URL is set")
     p.add_argument("--only", nargs="+", metavar="NAME", help="serve only these: pipeline, watch-generate, typ-stage")
