@@ -61,7 +61,6 @@ bench: $(STAMP)
 	$(BIN)/python bench/voxelize.py --out reports
 	test -f artifacts/stage1/model.pt || $(BIN)/typ with-server $(BIN)/dvc repro
 	$(BIN)/python bench/sampling.py --out reports
-	$(BIN)/python bench/two_stage.py --out reports
 	$(BIN)/python bench/pipeline.py --out reports
 	$(BIN)/python bench/ddp.py --out reports
 	$(BIN)/python bench/report.py --out reports

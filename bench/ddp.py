@@ -61,7 +61,7 @@ def _worker(rank: int, world: int, port: int, threads: int, sharded: bool, steps
         cond = torch.randn(n, 3, 16, 16, generator=gen)
         stamps: list[float] = []
         with tempfile.TemporaryDirectory() as tmp:
-            model = stage1.train(cfg, latents, cond, out=Path(tmp),
+            model = stage1.train(cfg, latents, cond, seed=cfg.seed, views=len(latents), out=Path(tmp),
                                  log_fn=lambda values, step: stamps.append(time.perf_counter()))
         if distributed.is_main():
             gaps = np.diff(stamps[2:])

@@ -106,19 +106,20 @@ SECTIONS = ("pipeline", "overhead", "skipping", "paper", "fusion")
 #: count is multiplied by --scale
 SMALL = {
     "profile": "tiny",
-    "simulate": {"frames": 2, "azimuth_step_deg": 1.0, "agents_min": 2, "agents_max": 2,
-                 "scenarios": {"source": {"train": 1, "test": 1}, "target": {"train": 1, "val": 1, "test": 1},
+    "simulate": {"frames": 2, "azimuth_step_deg": 1.0, "agents_min": 2, "agents_max": 2, "domains": {},
+                 "scenarios": {"source": {"train": 1, "test": 1},
+                               "target": {"train": 1, "val": 1, "test": 1, "pretrain": 1},
                                "real_cav": {"train": 1, "test": 1}}},
     "voxelize": {"workers": 2},
-    "vqvae": {"x": {"epochs": 2, "block_out_channels": [8, 16, 16, 16]},
-              "y": {"epochs": 2, "block_out_channels": [8, 16, 16, 16]}, "checkpoint_every": 1},
-    "stage1": {"epochs": 2, "sample_steps": 5, "eval_views": 1, "checkpoint_every": 1,
-               "unet": {"block_out_channels": [16, 16, 16, 16]}},
+    "vqvae": {"x": {"epochs": 2, "block_out_channels": [8, 16, 16]}, "checkpoint_every": 1},
+    "stage1": {"epochs": 2, "sample_steps": 3, "eval_views": 1, "checkpoint_every": 1, "warmup_steps": 1,
+               "unet": {"block_out_channels": [16, 16, 16]}},
     "adapt": {"epochs": 1, "disc_width": 8, "checkpoint_every": 1, "eval_views": 2},
-    "stage2": {"epochs": 1, "checkpoint_every": 1, "eval_pairs": 2},
-    "selftrain": {"epochs": 1, "checkpoint_every": 1, "eval_pairs": 2, "pseudo_references": 2, "sample_steps": 2},
+    "stage2": {"epochs": 1, "checkpoint_every": 1, "warmup_steps": 1},
+    "selftrain": {"epochs": 1, "checkpoint_every": 1, "pseudo_references": 2, "sample_steps": 2, "warmup_steps": 1},
     "generate": {"references_per_frame": 1, "sample_steps": 3, "max_distance": 50.0},
     "fusion": {"steps": 2, "pretrain_steps": 2, "finetune_steps": 2, "checkpoint_every": 1},
+    "evaluate": {"n_boot": 20, "max_pairs": 2, "gallery": 1},
 }
 ADDED = ("target", "test")          # where the incremental run adds its scenario
 STAGE_CMD = re.compile(r"\btyp\s+run\s+(\w+)")
@@ -984,7 +985,7 @@ def bench_paper(steps: int) -> dict:
         train_step(eps_loss, torch.optim.AdamW(ldm.parameters(), lr=s1.lr)), training=True, epochs=s1.epochs,
         n=N_TRAIN)
     ldm.eval().requires_grad_(False)
-    adapter = stage2.build_adapter(cfg.stage2, ldm).train()
+    adapter = stage2.build_adapter(ldm, res_blocks=cfg.stage2.adapter_res_blocks, seed=0).train()
     add("stage-2 adapter", "train step of F_AD, UNet frozen", [adapter],
         train_step(lambda: eps_loss(adapter), torch.optim.AdamW(adapter.parameters(), lr=cfg.stage2.lr)),
         training=True, epochs=cfg.stage2.epochs, n=N_TRAIN, assumed=True)

@@ -5,7 +5,7 @@
         [--train-epochs N] [--quick]
 
 Run from the repository root after `make run`. One process, one schedule after another:
-- Models: the schedule of artifacts/stage1/model.pt uses that model and its stored thresholds.
+- Models: the schedule of artifacts/stage1/seed_<stage1.seed>/ uses that model and its stored thresholds.
   A model trained with one β can't be sampled with another's, so every other schedule gets a
   stage-1 model trained here on the same encoded latents (tasks.stage1.train, the params.yaml
   stage1 block with only ``schedule`` and ``epochs`` replaced), its post-processing thresholds
@@ -154,15 +154,17 @@ def schedule_model(block, schedule: str, epochs: int, vq: tuple, views: dict, n_
 
     cfg = dataclasses.replace(block, schedule=schedule, epochs=epochs)
     key = hash_obj({"cfg": as_dict(cfg), "n_val": n_val, "train": [list(k) for k in views["train"].keys],
-                    "vqvae": hash_files([Path(block.vqvae) / k / "model.pt" for k in ("x", "y")])})[:12]
+                    "vqvae": hash_files([f for k in ("x", "y")
+                                         for f in sorted((Path(block.vqvae) / k).glob("*.safetensors"))])})[:12]
     folder = CACHE / f"{schedule}-{key}"
     how = f"trained by this bench for {epochs} epoch(s), thresholds tuned on {n_val} val views ({folder})"
-    if (folder / "model.pt").exists():
+    if (folder / "config.json").exists():
         model, saved = stage.load_model(folder)
         return model, saved["postprocess"], how
     print(f"training a stage-1 model for schedule {schedule} ({epochs} epochs) in {folder}", file=sys.stderr)
-    latents, cond = stage.encode_views(*vq, views["train"], mirror=True)
-    model = stage.train(cfg, latents, cond, out=folder, log_fn=lambda values, step: None)
+    latents, cond = stage.encode_views(*vq, views["train"], dihedral=True)
+    model = stage.train(cfg, latents, cond, seed=cfg.seed, views=len(views["train"]), out=folder,
+                        log_fn=lambda values, step: None)
     val = subset(views["val"], n_val)
     val_true, _ = val.batch(range(len(val)))
     _, y_val = stage.encode_views(*vq, val)
@@ -171,6 +173,21 @@ def schedule_model(block, schedule: str, epochs: int, vq: tuple, views: dict, n_
     thresholds = stage.tune_thresholds(logits, val_true, cfg, cfg.seed)
     stage.save_model(model, cfg, thresholds, folder)
     return model, thresholds, how
+
+
+def occupancy_metrics(occ, truth, grid) -> dict:
+    """JSD / MMD (r2dm preset, occupied voxel centres) and pooled voxel IoU of (N, C, H, W) bool
+    samples against the truth; ``empty_generated``: samples with no voxel (left out of JSD/MMD)."""
+    from typ.metrics import jsd_bev, mmd_bev, occupancy_iou
+    from typ.voxel import voxel_centers
+
+    gen = [voxel_centers(o.transpose(1, 2, 0), grid) for o in occ]
+    ref = [voxel_centers(t.transpose(1, 2, 0), grid) for t in truth]
+    kept = [g for g in gen if len(g)]
+    out = {"iou": occupancy_iou(occ, truth)["iou"], "empty_generated": len(gen) - len(kept)}
+    if kept:
+        out["jsd_r2dm"], out["mmd_r2dm"] = jsd_bev(ref, kept, "r2dm"), mmd_bev(ref, kept, "r2dm")
+    return out
 
 
 def subset(views, n: int):
@@ -195,7 +212,7 @@ def measure_schedule(model, thresholds: dict, cfg, x_vq, y_lat, truth, grid, pla
     import torch
 
     from models.postprocess import postprocess
-    from tasks.stage1 import generation_metrics, sample_logits
+    from tasks.stage1 import sample_logits
     from typ.metrics import occupancy_iou
 
     n = len(truth)
@@ -207,7 +224,7 @@ def measure_schedule(model, thresholds: dict, cfg, x_vq, y_lat, truth, grid, pla
     def score(logits, ref):
         occ = postprocess(logits, low=thresholds["low"], high=thresholds["high"], noise_std=thresholds["noise_std"],
                           generator=torch.Generator().manual_seed(cfg.seed)).numpy()
-        m = generation_metrics(occ, truth, grid)
+        m = occupancy_metrics(occ, truth, grid)
         p = torch.sigmoid(logits)
         row = {"jsd": m.get("jsd_r2dm", math.nan), "mmd": m.get("mmd_r2dm", math.nan), "iou": m["iou"],
                "empty": m["empty_generated"], "p": p, "occ": occ}
@@ -318,26 +335,27 @@ def main(argv: list[str] | None = None) -> int:
     from tasks.vqvae import load_model as load_vqvae
     from typ.config import load_config
 
-    block = load_config("params.yaml").stage1
-    artifact = Path(block.out) / "model.pt"
-    if not artifact.exists():
+    cfg_all = load_config("params.yaml")
+    block = cfg_all.stage1
+    artifact = stage.replica_dir(Path(block.out), block.seed)
+    if not (artifact / "config.json").exists():
         sys.exit(f"bench/sampling.py: {artifact} is missing: run `make run` first (from the repository root)")
     if max(steps) > block.train_timesteps:
         sys.exit(f"bench/sampling.py: --steps must be <= stage1.train_timesteps = {block.train_timesteps}")
     vq = tuple(load_vqvae(Path(block.vqvae) / k) for k in ("x", "y"))
-    views = {k: load_views(Path(block.input), dataset=block.dataset, split=getattr(block, f"{k}_split"))
-             for k in ("train", "val", "eval")}
+    splits = {"train": block.train_split, "val": block.val_split, "eval": cfg_all.evaluate.target_split}
+    views = {k: load_views(Path(block.input), dataset=block.dataset, split=split) for k, split in splits.items()}
     n = min(args.views, len(views["eval"]))
     test = subset(views["eval"], n)
     x_true, _ = test.batch(range(n))
     truth = x_true.numpy() > 0.5
     _, y_lat = stage.encode_views(*vq, test)
-    base, saved = stage.load_model(Path(block.out))
+    base, saved = stage.load_model(artifact)
     with torch.no_grad():
         stage.sample_logits(base, vq[0], y_lat, cfg=block, generator=torch.Generator(), num_steps=1)  # warm-up
         latents = vq[0].encode_pre_quant(x_true)
         _, decode_s = timed(lambda: vq[0].decode_latents(latents))
-        recon = stage.generation_metrics((torch.sigmoid(vq[0](x_true).logits) > 0.5).numpy(), truth, test.grid)
+        recon = occupancy_metrics((torch.sigmoid(vq[0](x_true).logits) > 0.5).numpy(), truth, test.grid)
     recon = {"jsd": recon.get("jsd_r2dm", math.nan), "mmd": recon.get("mmd_r2dm", math.nan), "iou": recon["iou"]}
     epochs = args.train_epochs or block.epochs
 

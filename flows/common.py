@@ -165,6 +165,17 @@ def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
     return path
 
 
+def finish_stage(stage: str, run, metrics: dict, root: Path, *, artifacts=()) -> Path:
+    """The end every stage flow shares: ``metrics/<stage>.json`` for DVC, the numbers to the
+    MLflow run, and the metrics file plus ``artifacts`` (paths, or (path, folder) pairs) as
+    the run's artifacts."""
+    path = write_metrics(stage, metrics, root)
+    run.metrics(numeric_leaves(metrics))
+    for item in (path, *artifacts):
+        run.artifact(*item) if isinstance(item, tuple) else run.artifact(item)
+    return path
+
+
 def numeric_leaves(metrics: dict, prefix: str = "") -> dict[str, float]:
     """Flatten nested metrics to ``a.b`` names, numbers only (for MLflow)."""
     out = {}
@@ -210,7 +221,5 @@ def per_scene_stage(stage: str, cfg: Config, root: Path, *, out: Path, plan: Cal
         for r in results:
             if r["skipped"]:
                 log.info("%s: skipped %s (%s)", stage, r["scenario"], r["skipped"])
-        path = write_metrics(stage, metrics, root)
-        run.metrics(numeric_leaves(metrics))
-        run.artifact(path)
+        finish_stage(stage, run, metrics, root)
     return metrics

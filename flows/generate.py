@@ -9,35 +9,28 @@ from prefect import flow
 
 from flows.common import per_scene_stage
 from tasks import generate as stage
-from tasks import stage1
 from tasks.edit import edit_figure, edit_view
-from tasks.ingest import read_frames, write_single_agent
-from tasks.stage2 import load_adapter
-from tasks.voxelize import to_grid
-from tasks.vqvae import load_model as load_vqvae
+from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
+from tasks.pipeline import TYPPipeline
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
 from typ.io import atomic_path, hash_files
-from typ.store import list_scenes, store_grid, stored_grid
 from typ.viz import save_png
-from typ.voxel import Grid
 
 STAGE = "generate"
 
 
-def load_models(root: Path, cfg) -> stage.Models:
-    block = cfg.generate
-    paths = [root / block.vqvae / "x" / "model.pt", root / block.vqvae / "y" / "model.pt",
-             root / block.stage1 / "model.pt", root / block.adapter / "adapter.pt"]
-    for p in paths:
-        if not p.exists():
-            raise TypError(p, "file", "a trained model (run the earlier stages first: dvc repro)", "missing")
-    ldm, saved = stage1.load_model(root / block.stage1)
-    adapter = load_adapter(paths[3], ldm)
-    sampling = stage1.sampling_config(cfg.stage1, saved, block.sampler, block.sample_steps)
-    return stage.Models(load_vqvae(root / block.vqvae / "x"), load_vqvae(root / block.vqvae / "y"), ldm,
-                        adapter, saved["postprocess"], sampling, hash_files(paths)[:16])
+def load_generator(root: Path, cfg) -> stage.Generator:
+    """The generator ``selftrain`` wrote for replica ``stage1.seed`` (the first), with the
+    sampler ``generate`` asks for and every dataset's sensor height."""
+    from tasks.selftrain import generator_dir
+
+    folder = generator_dir(root / cfg.generate.generator, cfg.stage1.seed)
+    pipe = TYPPipeline.from_pretrained(folder)
+    pipe = dataclasses.replace(pipe, sampler=cfg.generate.sampler, num_inference_steps=cfg.generate.sample_steps)
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return stage.Generator(pipe, dict(cfg.voxelize.mount_height), hash_files(files)[:16], cfg.simulate.azimuth_step_deg)
 
 
 @flow(name=STAGE, log_prints=False, validate_parameters=False)
@@ -46,8 +39,7 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
     cfg = load_config(root_path / params)
     block = cfg.generate
     out = root_path / block.out
-    grid = store_grid(root_path / cfg.stage1.input, "stage1.input")
-    models = load_models(root_path, cfg)
+    generator = load_generator(root_path, cfg)
 
     def plan():
         items, stale = [], []
@@ -64,14 +56,8 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
         return items, stale
 
     return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_scenario,
-                           work_kwargs={"cfg": block, "models": models, "grid": grid, "out": out},
+                           work_kwargs={"cfg": block, "generator": generator, "out": out},
                            label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize)
-
-
-def model_grid(root: Path, cfg) -> Grid:
-    """The grid the models were trained on: the voxel store's, else the params' (same by construction)."""
-    stored = list_scenes(root / cfg.stage1.input)
-    return stored_grid(stored[0].path) if stored else to_grid(cfg.voxelize.grid)
 
 
 def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, params: str,
@@ -90,26 +76,34 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     if overrides:
         block = dataclasses.replace(block, **overrides)
         block.check("typ generate", "--references/--rsu")
-    models, grid = load_models(root, cfg), model_grid(root, cfg)
+    generator = load_generator(root, cfg)
+    generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
     folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
     gset = GenerateSet(dataset=fmt, split="frames", references="vehicles")
-    results = [stage.run_scenario((gset, f), cfg=block, models=models, grid=grid, out=out) for f in folders]
+    results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
     return stage.summarize(results)
 
 
 def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path, params: str,
-                  agent: str | None = None, seed: int = 0) -> tuple[Path, Path]:
+                  agent: str | None = None, seed: int = 0, dataset: str | None = None) -> tuple[Path, Path]:
     """``typ edit``: a copy of ``scenario`` under ``out`` with one view regenerated after ``edit``,
     and beside it ``<scenario>_<timestamp>_<agent>_edit.png``, the view before and after.
-    Returns (the copy, the PNG)."""
+    Returns (the copy, the PNG).
+
+    dataset: whose LiDAR took the scenario (its ``voxelize.mount_height``); by default the name
+    of the folder two levels up (``<dataset>/<split>/<scenario>``), else the target domain."""
     cfg = load_config(root / params)
-    models, grid = load_models(root, cfg), model_grid(root, cfg)
+    if dataset is None:
+        guess = scenario.resolve().parent.parent.name
+        dataset = guess if guess in cfg.voxelize.mount_height else cfg.stage1.dataset
+    generator = load_generator(root, cfg)
+    grid = generator.grid(dataset)
     agents = list_agents(scenario)
     agent = agent or agents[0]
     if agent not in agents:
         raise TypError(scenario, "--agent", f"one of {agents}", agent)
     scene = read_scene(scenario, timestamp, agents=[agent])
-    result = edit_view(scene.agents[agent], edit, models, grid, seed)
+    result = edit_view(scene.agents[agent], edit, generator, grid, seed)
     target = out / scenario.name
     with atomic_path(target) as tmp:
         shutil.copytree(scenario, tmp, ignore=shutil.ignore_patterns("_*", ".*"))

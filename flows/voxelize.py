@@ -27,5 +27,5 @@ def voxelize_flow(params: str = "params.yaml", root: str = ".") -> dict:
         return items, stage.stale_outputs(items, out)
 
     return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_scene,
-                           work_kwargs={"grid": grid, "out": out}, label=lambda item: item.name,
+                           work_kwargs={"cfg": cfg.voxelize, "out": out}, label=lambda item: item.name,
                            summarize=lambda results: stage.summarize(results, grid))

@@ -4,10 +4,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from prefect import flow, task
-from prefect.cache_policies import NO_CACHE
+from prefect import flow
 
-from flows.common import Timer, numeric_leaves, write_metrics
+from flows.common import Timer, finish_stage, plain_task
+from models.vqvae import PooledBoxMap
 from tasks import vqvae as stage
 from tasks.voxel_data import load_views
 from typ.config import load_config
@@ -29,16 +29,15 @@ def vqvae_flow(params: str = "params.yaml", root: str = ".") -> dict:
     with stage_run(STAGE, cfg, root=root_path) as run:
         for kind in stage.KINDS:
             with Timer() as timer:
-                model = task(stage.train_one, name=f"train-{kind}", cache_policy=NO_CACHE)(
-                    kind, block, train, out=out, log_fn=run.metrics)
-            scores = task(stage.evaluate, name=f"evaluate-{kind}", cache_policy=NO_CACHE)(
-                model, kind, held_out, threshold=block.threshold, batch_size=block.batch_size)
+                model = plain_task(stage.train_one, f"train-{kind}")(kind, block, train, out=out, log_fn=run.metrics)
+            if isinstance(model, PooledBoxMap):  # nothing learned: y^f is the box map averaged per cell
+                metrics[kind] = {"encoding": "pool"}
+                continue
+            scores = plain_task(stage.evaluate, f"validate-{kind}")(model, kind, held_out, threshold=block.threshold,
+                                                                     batch_size=block.batch_size)
             metrics[kind] = {**scores, "seconds_training": round(timer.seconds, 3)}
             x_example, y_example = train.batch(np.arange(min(2, len(train))))
             run.log_model(f"vqvae-{kind}", model, x_example if kind == "x" else y_example, output="logits")
-        path = write_metrics(STAGE, metrics, root_path)
-        run.metrics(numeric_leaves(metrics))
-        run.artifact(path)
-        run.artifact(out / "x" / "config.json", "x")
-        run.artifact(out / "y" / "config.json", "y")
+        finish_stage(STAGE, run, metrics, root_path,
+                     artifacts=[(out / "x" / "config.json", "x"), (out / "y" / "config.json", "y")])
     return metrics

@@ -6,8 +6,8 @@ is shared and frozen, E_tgt/G_tgt stay frozen. A 4-layer discriminator D on x^f 
 views:
 - D:   L_D = E_tgt[max(0, 1 - D(E_tgt(x)))] + E_src[max(0, 1 + D(E_src(x)))]          (Eq. 8)
 - VQ:  L_vq = L_rec(G_src(Q(E_src(x))), x) - E_src[D(E_src(x))] + ||sg[x^z] - E_src(x)||²  (Eq. 9, 10)
-Output: ``<out>/source_vq/model.pt`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
-``<out>/discriminator.pt``. A NaN/Inf loss or a discriminator loss beyond
+Output: ``<out>/source_vq/`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
+``<out>/discriminator/``, each config.json + model.safetensors (:mod:`tasks.artifacts`). A NaN/Inf loss or a discriminator loss beyond
 ``max_disc_loss`` stops the stage before any model file is written.
 """
 from __future__ import annotations
@@ -23,21 +23,22 @@ import torch.nn.functional as F
 from models.discriminator import LatentDiscriminator
 from models.losses import focal_loss, hinge_d_loss, hinge_g_loss
 from models.vqvae import BEVVQVAE
-from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop, save_torch,
+from tasks.artifacts import save_module
+from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop,
                             seed_everything, steps_for)
 from tasks.voxel_data import ViewSet
 from tasks.vqvae import save_model as save_vqvae
 from typ import distributed
 from typ.config import AdaptConfig, as_dict
 from typ.io import hash_obj
-from typ.metrics import jsd_bev, mmd_bev, occupancy_iou
+from typ.metrics.bev import jsd_bev, mmd_bev
 from typ.voxel import voxel_centers
 
 
 def source_from_target(target: BEVVQVAE) -> BEVVQVAE:
     """E_src, G_src initialised from E_tgt, G_tgt; the codebook is Q_tgt, frozen."""
     source = copy.deepcopy(target)
-    source.net.quantize.embedding.weight.requires_grad_(False)
+    source.freeze_codebook()
     for p in target.parameters():
         p.requires_grad_(False)
     return source
@@ -109,7 +110,7 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
 
 def save(source_vq: BEVVQVAE, disc: LatentDiscriminator, out: Path) -> None:
     save_vqvae(source_vq, out / "source_vq")
-    save_torch(out / "discriminator.pt", {"config": disc.config, "state_dict": disc.state_dict()})
+    save_module(out / "discriminator", disc, disc.config)
 
 
 def _clouds(occupancy: np.ndarray, grid) -> list[np.ndarray]:
@@ -117,25 +118,40 @@ def _clouds(occupancy: np.ndarray, grid) -> list[np.ndarray]:
 
 
 @torch.no_grad()
-def evaluate(encoder_vq: BEVVQVAE, target_vq: BEVVQVAE, source_views: ViewSet, target_views: ViewSet,
-             disc: LatentDiscriminator, *, n: int) -> dict[str, float]:
+def translation_scores(encoder_vq: BEVVQVAE, target_vq: BEVVQVAE, source_views: ViewSet, target_views: ViewSet, *,
+                       n: int | None = None, batch_size: int = 8) -> dict[str, float]:
     """How target-like source scenes look through ``encoder_vq``'s encoder and the TARGET decoder.
 
-    jsd/mmd (r2dm preset): clouds G_tgt(Q(E(x_src))) vs the true target clouds; this is what
-    the generator will see, since stage 1 generates in the target's latent space.
+    jsd/mmd (r2dm preset): clouds G_tgt(Q(E(x_src))) vs the true target clouds, both as occupied
+    voxel centres on the target's grid (the height channels mean the same in both domains);
+    this is what the generator will see, since stage 1 generates in the target's latent space.
     rec_iou_source: E, G of ``encoder_vq`` reconstructing the source views (threshold 0.5).
-    disc_accuracy: share of views D puts on the right side of 0 (0.5 = features indistinguishable).
     """
+    n_src = len(source_views) if n is None else min(n, len(source_views))
+    n_tgt = len(target_views) if n is None else min(n, len(target_views))
+    grid = target_views.grid
+    gen, own_tp, own_union = [], 0, 0
+    for start in range(0, n_src, batch_size):
+        src = source_views.batch(np.arange(start, min(start + batch_size, n_src)))[0]
+        f_src = encoder_vq.encode_pre_quant(src)
+        gen += _clouds((torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5).numpy(), grid)
+        own = (torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5).numpy()
+        truth = src.numpy() > 0.5
+        own_tp += int((own & truth).sum())
+        own_union += int((own | truth).sum())
+    real = []
+    for start in range(0, n_tgt, batch_size):
+        real += _clouds(target_views.batch(np.arange(start, min(start + batch_size, n_tgt)))[0].numpy() > 0.5, grid)
+    gen = [g for g in gen if len(g)] or [np.zeros((1, 3))]
+    return {"jsd_r2dm": jsd_bev(real, gen, preset="r2dm"), "mmd_r2dm": mmd_bev(real, gen, preset="r2dm"),
+            "rec_iou_source": own_tp / own_union if own_union else float("nan")}
+
+
+@torch.no_grad()
+def discriminator_accuracy(disc: LatentDiscriminator, encoder_vq: BEVVQVAE, target_vq: BEVVQVAE,
+                           source_views: ViewSet, target_views: ViewSet, *, n: int) -> float:
+    """Share of views D puts on the right side of 0 (0.5 = features indistinguishable)."""
     src = source_views.batch(np.arange(min(n, len(source_views))))[0]
     tgt = target_views.batch(np.arange(min(n, len(target_views))))[0]
-    f_src = encoder_vq.encode_pre_quant(src)
-    as_target = torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5
-    own = torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5
-    grid = source_views.grid
-    gen, real = _clouds(as_target.numpy(), grid), _clouds(tgt.numpy() > 0.5, grid)
-    gen = [g for g in gen if len(g)] or [np.zeros((1, 3))]
-    f_tgt = target_vq.encode_pre_quant(tgt)
-    correct = torch.cat([disc(f_tgt) > 0, disc(f_src) < 0]).float().mean()
-    return {"jsd_r2dm": jsd_bev(real, gen, preset="r2dm"), "mmd_r2dm": mmd_bev(real, gen, preset="r2dm"),
-            "rec_iou_source": occupancy_iou(own.numpy(), src.numpy() > 0.5)["iou"],
-            "disc_accuracy": float(correct)}
+    correct = torch.cat([disc(target_vq.encode_pre_quant(tgt)) > 0, disc(encoder_vq.encode_pre_quant(src)) < 0])
+    return float(correct.float().mean())

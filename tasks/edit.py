@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tasks.generate import EGO_CAR_LWH, Models, generate_occupancy, occupancy_to_points
+from tasks.generate import EGO_CAR_LWH, Generator
 from typ.errors import TypError
 from typ.geometry import points_in_boxes
 from typ.scene import AgentView
@@ -85,7 +85,7 @@ def footprint_mask(boxes: np.ndarray, grid: Grid, margin: float = FOOTPRINT_MARG
     return box_map(grown, grid)[:, :, 0]
 
 
-def edit_view(view: AgentView, edit: BoxEdit, models: Models, grid: Grid, seed: int) -> EditedView:
+def edit_view(view: AgentView, edit: BoxEdit, generator: Generator, grid: Grid, seed: int) -> EditedView:
     """Regenerate ``view`` with ``edit`` applied (see the module docstring)."""
     if edit.is_empty():
         raise TypError("typ edit", "edits", "at least one of --remove, --move, --add", "none")
@@ -98,8 +98,10 @@ def edit_view(view: AgentView, edit: BoxEdit, models: Models, grid: Grid, seed: 
     inside_old = points_in_boxes(view.points, grown_old).any(axis=1) if len(old) else np.zeros(len(view.points), bool)
     x_e = voxelize(view.points[~inside_old], grid).transpose(2, 0, 1)
     y_r = box_map(edited.boxes, grid).transpose(2, 0, 1)
-    occupancy = generate_occupancy(x_e[None], y_r[None], models, seed)[0]
-    generated = occupancy_to_points(occupancy & footprint[None], grid)
+    # a re-simulation-conditioned generator: the view re-simulated from its own pose is the view
+    resim = x_e[None].astype(np.float32) if generator.pipe.conditions == 2 else None
+    occupancy = generator.pipe.occupancy(x_e[None], y_r[None], seed=seed, resim=resim)[0]
+    generated = generator.pipe.points(occupancy & footprint[None], grid, seed)
     kept = view.points[~_in_cells(view.points, footprint, grid)]
     points = np.concatenate([kept[:, :4].astype(np.float32), generated]).astype(np.float32)
     out = dataclasses.replace(edited, points=points, semantics=None)

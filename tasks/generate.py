@@ -20,40 +20,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
-
-from models.postprocess import postprocess
-from tasks import stage1
-from tasks.stage2 import adapter_features
-from typ import distributed
-from typ.config import GenerateConfig, GenerateSet, Stage1Config, as_dict
+from tasks.pipeline import TYPPipeline
+from typ.config import GenerateConfig, GenerateSet, as_dict
+from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
 from typ.io import atomic_path, hash_files, hash_obj, read_json_or_none, write_json
-from typ.scene import AgentView, Scene
-from typ.voxel import Grid, box_map, points_to_reference, voxel_centers, voxelize
+from typ.scene import AgentView, Scene, vehicle_mask
+from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
 MANIFEST = "_typ.json"
 #: why a reference view or a scenario was not generated, counted per stage run
 SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_without_candidate_vehicle",
                 "roadside_unit_without_ground", "reference_view_empty")
-#: labels of vehicles a reference sensor can ride on: the simulator's, KITTI's, Waymo's, nuScenes'
-VEHICLE_LABELS = frozenset({"car", "van", "truck", "vehicle", "bus", "trailer", "construction_vehicle"})
 #: the ego's own car, which the ego's labels never contain but a reference sees
 EGO_CAR_LWH = (4.5, 1.85, 1.5)
-
-
-@dataclass(frozen=True)
-class Models:
-    """Everything generation needs, loaded once per stage run."""
-
-    x_vq: object
-    y_vq: object
-    ldm: object
-    adapter: object
-    thresholds: dict
-    sampling: Stage1Config
-    digest: str
 
 
 @dataclass(frozen=True)
@@ -65,15 +46,17 @@ class Reference:
     ids: np.ndarray
     x_e: np.ndarray         # (C, H, W) bool, x_e'
     y_r: np.ndarray         # (1, H, W) bool
+    ego_points: np.ndarray  # (N, 4) the ego's cloud in the reference frame (x_e' before voxelization)
 
 
-def candidate_ids(ego: AgentView, cfg: GenerateConfig, skipped: dict[str, int]) -> set[int]:
-    """Ids of the ego's labelled vehicles inside the distance band [min_distance, max_distance].
+def candidate_ids(ego: AgentView, cfg, skipped: dict[str, int]) -> set[int]:
+    """Ids of the ego's labelled vehicles inside the distance band [cfg.min_distance, cfg.max_distance]
+    (``cfg``: the generate or selftrain block).
 
     Only vehicles carry a reference sensor: pedestrians, cyclists and signs (KITTI, Waymo,
     nuScenes labels) are never candidates and are not counted as skipped.
     """
-    vehicle = np.array([str(label).lower() in VEHICLE_LABELS for label in ego.box_labels], dtype=bool)
+    vehicle = vehicle_mask(ego.box_labels)  # only vehicles carry a reference sensor
     dist = np.hypot(ego.boxes[:, 0], ego.boxes[:, 1])
     near = vehicle & (dist < cfg.min_distance)
     far = vehicle & (dist > cfg.max_distance)
@@ -129,7 +112,7 @@ def reference_at(ego: AgentView, ref_pose: np.ndarray, agent_id: str, exclude_id
     ids = np.concatenate([ego.box_ids[keep], [ego_numeric]])
     moved = points_to_reference(ego.points, ego.pose, ref_pose)
     return Reference(agent_id, np.asarray(ref_pose, dtype=np.float64), boxes, labels, ids,
-                     voxelize(moved, grid).transpose(2, 0, 1), box_map(boxes, grid).transpose(2, 0, 1))
+                     voxelize(moved, grid).transpose(2, 0, 1), box_map(boxes, grid).transpose(2, 0, 1), moved)
 
 
 def roadside_poses(ego: AgentView, cfg: GenerateConfig, rng: np.random.Generator,
@@ -174,40 +157,21 @@ def cav_references(scene: Scene, grid: Grid) -> list[Reference]:
     return refs
 
 
-@torch.no_grad()
-def generate_occupancy(x_e: np.ndarray, y_r: np.ndarray, models: Models, seed: int) -> np.ndarray:
-    """Batched sampling of P(x_r | x_e', y_r): (N, C, H, W) bool, post-processed (TYP §4.1).
+def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: int, *,
+                    resim_spec=None) -> list[np.ndarray]:
+    """Batched sampling for all references of a scenario: (N, 4) float32 clouds in each
+    reference's sensor frame (``grid``: that sensor's grid), with the domain's point density
+    and intensity (:func:`tasks.pipeline.occupancy_to_points`)."""
+    resim = None
+    if pipe.conditions == 2:
+        from tasks.stage2 import resimulated_view
 
-    x_e: (N, C, H, W) x_e' grids, y_r: (N, 1, H, W) box maps. ``models.adapter`` None samples
-    stage 1 alone, P(x_r | y_r).
-    """
-    with distributed.on_device(models.x_vq, models.y_vq, models.ldm, models.adapter) as dev:
-        x_e = torch.from_numpy(np.asarray(x_e, dtype=np.float32)).to(dev)
-        y_r = torch.from_numpy(np.asarray(y_r, dtype=np.float32)).to(dev)
-        features = (None if models.adapter is None else
-                    adapter_features(models.adapter, models.ldm, models.x_vq.encode_pre_quant(x_e)))
-        # the generators stay on the CPU: the same seed draws the same noise on every device
-        logits = stage1.sample_logits(models.ldm, models.x_vq, models.y_vq.encode_pre_quant(y_r),
-                                      cfg=models.sampling, generator=torch.Generator().manual_seed(seed),
-                                      adapter_features=features)
-    t = models.thresholds
-    return postprocess(logits.cpu(), low=t["low"], high=t["high"], noise_std=t["noise_std"],
-                       generator=torch.Generator().manual_seed(seed)).numpy()
+        resim = np.stack([resimulated_view(r.ego_points, resim_spec, grid) for r in refs]).astype(np.float32)
+    occupancy = pipe.occupancy(np.stack([r.x_e for r in refs]), np.stack([r.y_r for r in refs]), seed=seed, resim=resim)
+    return [pipe.points(occ, grid, seed + k) for k, occ in enumerate(occupancy)]
 
 
-def occupancy_to_points(occupancy: np.ndarray, grid: Grid) -> np.ndarray:
-    """(C, H, W) bool -> (N, 4) float32 cloud of occupied voxel centres, intensity 0 (TYP §4.1)."""
-    xyz = voxel_centers(occupancy.transpose(1, 2, 0), grid)
-    return np.concatenate([xyz, np.zeros((len(xyz), 1))], axis=1).astype(np.float32)
-
-
-def generate_points(refs: list[Reference], models: Models, grid: Grid, seed: int) -> list[np.ndarray]:
-    """Batched sampling for all references of a scenario: (N, 4) float32 clouds, intensity 0."""
-    occupancy = generate_occupancy(np.stack([r.x_e for r in refs]), np.stack([r.y_r for r in refs]), models, seed)
-    return [occupancy_to_points(occ, grid) for occ in occupancy]
-
-
-def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, models: Models, grid: Grid) -> str:
+def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, digest: str, grid: Grid) -> str:
     files = sorted(p for p in folder.rglob("*") if p.is_file() and not p.name.startswith(("_", ".")))
     if gset.references == "vehicles":
         # only the ego's files are read; a change to another agent's must not regenerate
@@ -215,19 +179,20 @@ def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, models: M
         files = [p for p in files if p.parent.name == ego]
     return hash_obj({"inputs": hash_files(files), "set": as_dict(gset),
                      "cfg": {k: v for k, v in as_dict(cfg).items() if k not in ("sets", "workers")},
-                     "models": models.digest, "grid": grid.to_dict()})
+                     "models": digest, "grid": grid.to_dict()})
 
 
 def new_skip_counts() -> dict[str, int]:
     return {k: 0 for k in SKIP_REASONS}
 
 
-def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, models: Models, grid: Grid,
+def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generator: "Generator",
                  out: Path) -> dict:
     """Generate and write every reference of one scenario; skip it when its key is unchanged."""
     gset, folder = item
     target = out / gset.dataset / gset.split / folder.name
-    key = scenario_key(folder, gset, cfg, models, grid)
+    grid = generator.grid(gset.dataset)
+    key = scenario_key(folder, gset, cfg, generator.digest, grid)
     base = {"scenario": f"{gset.dataset}/{gset.split}/{folder.name}", "set": f"{gset.dataset}/{gset.split}"}
     manifest = read_json_or_none(target / MANIFEST)
     if manifest is not None and manifest.get("key") == key:
@@ -256,7 +221,8 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, models:
         # an empty view is still written (every agent has a view at every timestamp); counted
         skipped["reference_view_empty"] += sum(not r.x_e.any() and not r.y_r.any() for r in refs)
     all_refs = [r for _, refs in frames for r in refs]
-    clouds = iter(generate_points(all_refs, models, grid, cfg.seed) if all_refs else [])
+    clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, resim_spec=generator.resim_spec(gset.dataset))
+                  if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
     with atomic_path(target) as tmp:
         tmp.mkdir(parents=True)
@@ -291,3 +257,32 @@ def summarize(results: list[dict]) -> dict:
     if metrics["references"]:
         metrics["points_per_reference"] = round(metrics["generated_points"] / metrics["references"], 1)
     return metrics
+
+
+@dataclass(frozen=True)
+class Generator:
+    """The trained generator with what a stage run needs around it: its sensor grids per dataset
+    (``mount_height``: each dataset's LiDAR height) and a digest of its files for the skip keys."""
+
+    pipe: TYPPipeline
+    mount_height: dict
+    digest: str
+    azimuth_step_deg: float = 0.4   #: the simulated sensors' azimuth step (re-simulation casts with it)
+
+    def grid(self, dataset: str) -> Grid:
+        if dataset not in self.mount_height:
+            raise TypError("params.yaml", f"voxelize.mount_height.{dataset}",
+                           f"the LiDAR height of dataset {dataset!r} (known: {sorted(self.mount_height)})", "missing")
+        return self.pipe.grid.for_sensor(self.mount_height[dataset])
+
+    def resim_spec(self, dataset: str):
+        """The sensor a re-simulation-conditioned generator re-simulates with (None for TYP's)."""
+        if self.pipe.conditions != 2:
+            return None
+        from typ.sim.sensor import DOMAINS, domain_spec
+
+        if dataset not in DOMAINS:
+            raise TypError("params.yaml", "selftrain.generator",
+                           f"typ for dataset {dataset!r}: typ_resim re-simulates with a known sensor "
+                           f"(one of {sorted(DOMAINS)})", "typ_resim")
+        return domain_spec(dataset, azimuth_step_deg=self.azimuth_step_deg).sensor

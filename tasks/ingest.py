@@ -29,6 +29,10 @@ FORMATS = ("kitti", "nuscenes", "waymo")
 #: height of the top LiDAR above the vehicle frame's origin (Waymo's is on the ground under
 #: the rear axle; the top LiDAR of its Pacificas sits about 2.2 m up, as the target domain's)
 SENSOR_HEIGHT = {"kitti": 0.0, "nuscenes": 0.0, "waymo": 2.2}
+#: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
+#: voxel grid's z is relative to it): KITTI's Velodyne HDL-64E at 1.73 m (Geiger et al. 2013,
+#: Fig. 3), nuScenes' LIDAR_TOP at about 1.84 m (its calibrated sensor), Waymo's top LiDAR as above
+MOUNT_HEIGHT = {"kitti": 1.73, "nuscenes": 1.84, "waymo": 2.2}
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,11 @@ still fine-tune the adapter F_AD on it, jointly with the source (simulated CAV) 
 
 Each can be switched off, as can the adversarial adaptation of the source encoder (then the
 source tuples are encoded by E_tgt and the adapter is trained anew: "no adaptation"), so
-TYP Table 4's ablation is one params change. The UNet stays frozen throughout.
+TYP Table 4's ablation is one params change. The UNet stays frozen throughout. The same
+recipe enhances the re-simulation-conditioned adapter (``typ_resim``) when stage 2 trained
+one: its pseudo references and dummy egos carry re-simulated views too (an empty one for the
+dummy ego). Adapters go to ``<out>/seed_<s>/<variant>/``; the generator ``generate`` uses, a
+:class:`tasks.pipeline.TYPPipeline`, to ``<out>/generator/seed_<s>/``.
 """
 from __future__ import annotations
 
@@ -22,26 +26,28 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import torch
 
-from tasks import generate
-from tasks.stage2 import build_adapter, encode, fit_adapter
-from tasks.training import seed_everything
-from tasks.voxel_data import ViewSet
-from typ.config import GenerateConfig, SelftrainConfig, Stage2Config, as_dict
+from tasks import generate, stage1, stage2
+from tasks.pipeline import TYPPipeline, point_statistics
+from tasks.stage2 import Latents, Tuples
+from tasks.voxel_data import ViewSet, load_views
+from typ.config import SelftrainConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene
 from typ.voxel import Grid
 
+STAGE = "selftrain"
+
 
 @dataclass(frozen=True)
 class Variant:
-    """One row of TYP Table 4."""
+    """One row of TYP Table 4 (``conditions = 2``: the re-simulation-conditioned adapter)."""
 
     name: str
     discriminator: bool
     self_training: bool
     dummy_ego: bool
+    conditions: int = 1
 
 
 #: TYP Table 4's rows, in its order
@@ -59,83 +65,148 @@ def variant_of(cfg: SelftrainConfig) -> Variant:
     return Variant(name, cfg.discriminator, cfg.self_training, cfg.dummy_ego)
 
 
-def variants_to_run(cfg: SelftrainConfig) -> list[Variant]:
+def resim_variant(cfg: SelftrainConfig) -> Variant:
+    """The switches' recipe on the re-simulation-conditioned adapter."""
+    v = variant_of(cfg)
+    return dataclasses.replace(v, name="typ_resim", discriminator=True, conditions=2)
+
+
+def variants_to_run(cfg: SelftrainConfig, *, resim: bool) -> list[Variant]:
     chosen = variant_of(cfg)
-    if not cfg.ablation:
-        return [chosen]
-    return list(TABLE4) + ([chosen] if chosen not in TABLE4 else [])
+    out = list(TABLE4) + ([chosen] if chosen not in TABLE4 else []) if cfg.ablation else [chosen]
+    return out + ([resim_variant(cfg)] if resim else [])
 
 
-Latents = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
-
-
-def dummy_ego_tuples(x_vq, y_vq, views: ViewSet, batch_size: int = 8) -> Latents:
-    """(x_r^f, y_r^f, x_e^f) for target ego views with x_e = 0 (TYP §3.4, first solution)."""
+def dummy_ego_tuples(views: ViewSet) -> Tuples:
+    """Target ego views as (x_r, y_r) with an empty ego (and an empty re-simulated view)."""
     index = np.arange(len(views))
     x, y = views.occupancy(index), views.box_maps(index)
-    return encode(x_vq, y_vq, x, y, np.zeros_like(x), batch_size)
+    return Tuples(x, y, np.zeros_like(x), np.zeros_like(x))
 
 
-def pseudo_references(split_root: Path, cfg: SelftrainConfig, generate_cfg: GenerateConfig, grid: Grid,
-                      rng: np.random.Generator) -> list[generate.Reference]:
-    """Up to ``cfg.pseudo_references`` reference poses, one per target frame in turn, each on a
-    labelled vehicle inside [min_distance, max_distance] drawn with ``rng`` (only egos are read)."""
-    band = dataclasses.replace(generate_cfg, min_distance=cfg.min_distance, max_distance=cfg.max_distance)
-    skipped = generate.new_skip_counts()
+def target_frames(split_root: Path) -> list:
+    """Every frame's ego view (the only real cloud of single-agent target scenes)."""
     frames = []
     for folder in list_scenarios(split_root):
         ego_id = list_agents(folder)[0]
         frames += [read_scene(folder, ts, agents=[ego_id]).ego for ts in list_timestamps(folder)]
+    return frames
+
+
+def pseudo_references(frames: list, cfg: SelftrainConfig, grid: Grid,
+                      rng: np.random.Generator) -> list[generate.Reference]:
+    """Up to ``cfg.pseudo_references`` reference poses, one per target frame in turn, each on a
+    labelled vehicle inside [min_distance, max_distance] drawn with ``rng``."""
+    skipped = generate.new_skip_counts()
     refs: list[generate.Reference] = []
     for ego in frames:
         if len(refs) == cfg.pseudo_references:
             break
-        ids = sorted(generate.candidate_ids(ego, band, skipped))
+        ids = sorted(generate.candidate_ids(ego, cfg, skipped))
         if ids:
             vid = int(rng.choice(ids))
             refs.append(generate.build_reference(ego, int(np.flatnonzero(ego.box_ids == vid)[0]), grid))
     if not refs:
-        raise TypError(split_root, "selftrain.min_distance/max_distance",
+        raise TypError("selftrain", "selftrain.min_distance/max_distance",
                        "target scenes with labelled vehicles inside the distance band (for pseudo references)",
                        f"none in {len(frames)} frames")
     return refs
 
 
-def pseudo_tuples(refs: list[generate.Reference], models: generate.Models, seed: int,
-                  batch_size: int = 8) -> tuple[Latents, np.ndarray]:
-    """Generate x̂_r for each reference with ``models`` and encode (x̂_r, y_r, x_e') with E_tgt."""
+def pseudo_tuples(refs: list[generate.Reference], pipe: TYPPipeline, seed: int, resim: np.ndarray | None) -> Tuples:
+    """(x̂_r, y_r, x_e'[, re-simulated]) with x̂_r sampled by ``pipe``, the model being enhanced."""
     x_e = np.stack([r.x_e for r in refs]).astype(np.float32)
     y_r = np.stack([r.y_r for r in refs]).astype(np.float32)
-    occupancy = sample_batched(x_e, y_r, models, seed, batch_size)
-    return encode(models.x_vq, models.y_vq, occupancy.astype(np.float32), y_r, x_e, batch_size), occupancy
-
-
-def sample_batched(x_e: np.ndarray, y_r: np.ndarray, models: generate.Models, seed: int,
-                   batch_size: int = 8) -> np.ndarray:
-    """:func:`tasks.generate.generate_occupancy` in batches (batch i seeded ``seed + i``)."""
-    return np.concatenate([generate.generate_occupancy(x_e[i:i + batch_size], y_r[i:i + batch_size], models, seed + i)
-                           for i in range(0, len(x_e), batch_size)])
+    x_hat = pipe.occupancy(x_e, y_r, seed=seed, resim=resim).astype(np.float32)
+    return Tuples(x_hat, y_r, x_e, resim)
 
 
 def concat(*parts: Latents) -> Latents:
-    return tuple(torch.cat([p[k] for p in parts]) for k in range(3))
+    import torch
+
+    return Latents(*(torch.cat([getattr(p, k) for p in parts]) for k in ("z0", "cond", "ego")))
 
 
-def no_adaptation(stage2_cfg: Stage2Config, ldm, schedule: str, train_timesteps: int, source_tgt: Latents, *,
-                  out: Path, log_fn: Callable[[dict, int], None]):
-    """Stage 2 without adaptation: a fresh adapter on source tuples encoded by E_tgt, stage 2's recipe."""
-    seed_everything(stage2_cfg.seed)  # before the adapter's initial weights are drawn
-    return fit_adapter(build_adapter(stage2_cfg, ldm), ldm, schedule, train_timesteps, *source_tgt,
-                       name="selftrain.no_adaptation", seed=stage2_cfg.seed, lr=stage2_cfg.lr,
-                       epochs=stage2_cfg.epochs, batch_size=stage2_cfg.batch_size,
-                       checkpoint_every=stage2_cfg.checkpoint_every, key_extra=as_dict(stage2_cfg), out=out,
-                       log_fn=log_fn)
+def base_pipeline(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> TYPPipeline:
+    """Stage 1 of replica ``seed`` as a pipeline without an adapter, sampling as the generator will."""
+    block = cfg.selftrain
+    ldm, saved = stage1.load_model(stage1.replica_dir(root / block.stage1, seed))
+    g = cfg.voxelize.grid
+    return TYPPipeline(x_vq, y_encoder, ldm, None, Grid(g.x_range, g.y_range, g.z_range, g.shape),
+                       saved["schedule"], int(saved["train_timesteps"]), block.sampler, block.sample_steps,
+                       saved["postprocess"], stats)
 
 
-def finetune(cfg: SelftrainConfig, variant: Variant, base, ldm, schedule: str, train_timesteps: int,
-             pool: Latents, *, out: Path, log_fn: Callable[[dict, int], None]):
-    """Joint fine-tuning of a copy of ``base`` on the pooled source and target tuples."""
-    return fit_adapter(copy.deepcopy(base), ldm, schedule, train_timesteps, *pool, name=f"selftrain.{variant.name}",
-                       seed=cfg.seed, lr=cfg.lr, epochs=cfg.epochs, batch_size=cfg.batch_size,
-                       checkpoint_every=cfg.checkpoint_every, key_extra={**as_dict(cfg), "variant": variant.name},
-                       out=out, log_fn=log_fn)
+def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None) -> dict:
+    """Every variant for every stage-1 replica, and the generator pipeline for each replica."""
+    from tasks.vqvae import load_model as load_vqvae
+    from typ.sim.sensor import domain_spec
+
+    block = cfg.selftrain
+    out = root / block.out
+    target_grid = cfg.voxelize.sensor_grid(block.target_domain)
+    target_x, y_encoder = load_vqvae(root / block.vqvae / "x"), load_vqvae(root / block.vqvae / "y")
+    source_x = load_vqvae(root / block.adapt / "source_vq", "adapt")
+    tuples = stage2.load_tuples(root / block.stage2)
+    resim = tuples.resim is not None
+    if block.generator == "typ_resim" and not resim:
+        raise TypError("params.yaml", "selftrain.generator", "typ unless stage2.resim is true (no re-simulated "
+                       "tuples to train typ_resim on)", block.generator)
+    variants = variants_to_run(block, resim=resim)
+    frames = target_frames(root / block.sim / block.target_domain / block.target_split)
+    stats = point_statistics([f.points for f in frames], target_grid)
+    refs = pseudo_references(frames, block, target_grid, np.random.default_rng(block.seed))
+    spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor if resim else None
+    ref_resim = (np.stack([stage2.resimulated_view(r.ego_points, spec, target_grid) for r in refs]).astype(np.float32)
+                 if resim else None)
+    dummy = dummy_ego_tuples(load_views(root / block.voxels, dataset=block.target_domain, split=block.target_split))
+    metrics: dict = {"variants": [v.name for v in variants], "source_tuples": len(tuples), "pseudo_references": len(refs),
+                     "dummy_ego_tuples": len(dummy)}
+    augment = cfg.stage2.augment
+    for seed in stage1.replica_seeds(cfg.stage1.seed, cfg.stage1.replicas):
+        base_pipe = base_pipeline(cfg, root, seed, target_x, y_encoder, stats)
+        ldm, saved = base_pipe.unet, {"schedule": base_pipe.schedule, "train_timesteps": base_pipe.train_timesteps}
+        stage2_dir = stage1.replica_dir(root / block.stage2, seed)
+        for v in variants:
+            if not v.discriminator:  # "no adaptation": stage 2's recipe on tuples encoded by E_tgt
+                data = stage2.encode(tuples, target_x, y_encoder, ldm, augment=augment)
+                adapter = stage2.fit_adapter(stage2.build_adapter(ldm, res_blocks=cfg.stage2.adapter_res_blocks, seed=seed), ldm,
+                                             saved["schedule"], saved["train_timesteps"], data,
+                                             name=f"selftrain.seed_{seed}.{v.name}",
+                                             settings=stage2.settings_of(cfg.stage2, seed, cfg.stage1.min_snr), views=len(tuples),
+                                             key_extra=as_dict(cfg.stage2), out=out, log_fn=log_fn)
+            else:
+                base = stage2.load_adapter(stage2_dir / stage2.ADAPTERS[v.conditions])
+                if not (v.self_training or v.dummy_ego):
+                    adapter = base
+                else:
+                    parts = [stage2.encode(tuples, source_x, y_encoder, ldm, augment=augment, conditions=v.conditions)]
+                    n_views = len(tuples)
+                    if v.self_training:  # x̂_r generated by the model being enhanced
+                        pseudo = pseudo_tuples(refs, base_pipe.with_adapter(base), seed,
+                                               ref_resim if v.conditions == 2 else None)
+                        parts.append(stage2.encode(pseudo, target_x, y_encoder, ldm, augment=augment,
+                                                   conditions=v.conditions))
+                        n_views += len(pseudo)
+                    if v.dummy_ego:
+                        parts.append(stage2.encode(dummy, target_x, y_encoder, ldm, augment=augment,
+                                                   conditions=v.conditions))
+                        n_views += len(dummy)
+                    adapter = stage2.fit_adapter(copy.deepcopy(base), ldm, saved["schedule"], saved["train_timesteps"],
+                                                 concat(*parts), name=f"selftrain.seed_{seed}.{v.name}",
+                                                 settings=stage2.settings_of(block, seed, cfg.stage1.min_snr), views=n_views,
+                                                 key_extra={**as_dict(block), "variant": v.name}, out=out,
+                                                 log_fn=log_fn)
+            stage2.save_adapter(adapter, stage1.replica_dir(out, seed) / v.name)
+            chosen = resim_variant(block) if block.generator == "typ_resim" else variant_of(block)
+            if v == chosen:
+                base_pipe.with_adapter(adapter).save_pretrained(generator_dir(out, seed))
+                if log_model is not None and seed == cfg.stage1.seed:
+                    log_model("selftrain-adapter", adapter, parts[0].ego[:2] if v.self_training or v.dummy_ego
+                              else stage2.encode(dummy, target_x, y_encoder, ldm, conditions=v.conditions).ego[:2])
+    return metrics
+
+
+def generator_dir(out: Path, seed: int) -> Path:
+    """The trained generator of replica ``seed``: ``<out>/generator/seed_<seed>``."""
+    return Path(out) / "generator" / f"seed_{seed}"

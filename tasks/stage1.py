@@ -1,47 +1,64 @@
 """Stage ``stage1`` (TYP Eq. 4): P(x|y), a latent diffusion model on the target domain's ego views.
 
-x^f = E_x(x) and y^f = E_y(y) come from the frozen VQ-VAEs (pre-quantization latents, as in
-LDM; G_x quantizes when decoding). Training predicts ε (Eq. 4); the post-processing
-thresholds (TYP §4.1) are tuned on the validation split and stored with the model; the
-held-out split is sampled for the stage metrics. Output: ``<out>/model.pt`` (config,
-weights, schedule, thresholds), ``<out>/postprocess.json``, ``<out>/checkpoints/<key>/``.
+x^f = E_x(x) and y^f = E_y(y) come from the frozen encoders (pre-quantization latents, as in
+LDM; G_x quantizes when decoding). Every view is used under the 8 symmetries of the square
+grid (:func:`tasks.voxel_data.apply_dihedral`): a spinning sensor at the centre sees a rotated
+or mirrored street the same way. Training predicts ε (Eq. 4) with AdamW, a linear warm-up and
+a cosine decay of the learning rate, and keeps an exponential moving average of the weights,
+which is the model that samples (as LDM and diffusers' training scripts do). The
+post-processing thresholds (TYP §4.1) are tuned on the validation split and stored with the
+model. ``replicas`` models are trained with seeds ``seed, seed + 1, ...``, each in its own
+folder ``<out>/seed_<s>/``; the first is the one later stages build on, the others give the
+evaluation its spread over training seeds.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
-
 import itertools
+import math
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from models.ldm import LatentDiffusion
 from models.postprocess import postprocess
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
-from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
+from tasks.artifacts import load_module, save_module
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ import distributed
 from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
-from typ.io import hash_obj, write_json
-from typ.metrics import chamfer_distance, jsd_bev, mmd_bev, occupancy_iou
-from typ.voxel import Grid, voxel_centers
+from typ.io import hash_obj
+from typ.metrics.truth import occupancy_iou
+
+STAGE = "stage1"
+
+
+def replica_seeds(seed: int, replicas: int) -> list[int]:
+    """The training seeds of a stage with ``replicas`` models: ``seed, seed + 1, ...``."""
+    return [seed + k for k in range(replicas)]
+
+
+def replica_dir(out: Path, seed: int) -> Path:
+    """Where the model trained with ``seed`` lives: ``<out>/seed_<seed>``."""
+    return Path(out) / f"seed_{seed}"
 
 
 @torch.no_grad()
-def encode_views(x_vq: BEVVQVAE, y_vq: BEVVQVAE, views: ViewSet, *, mirror: bool = False,
+def encode_views(x_vq, y_vq, views: ViewSet, *, dihedral: bool = False,
                  batch_size: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
-    """(x^f, y^f) pre-quantization latents of every view, optionally with mirrored copies."""
+    """(x^f, y^f) pre-quantization latents of every view; with ``dihedral``, of each view under
+    all 8 symmetries (8 N rows, symmetry-major)."""
     xs, ys = [], []
-    for flip in ([False, True] if mirror else [False]):
+    for k in (range(8) if dihedral else [0]):
         for start in range(0, len(views), batch_size):
             index = np.arange(start, min(start + batch_size, len(views)))
-            x, y = views.batch(index, flips=np.full(len(index), flip))
+            x, y = views.batch(index, dihedral=np.full(len(index), k))
             xs.append(x_vq.encode_pre_quant(x))
             ys.append(y_vq.encode_pre_quant(y))
     return torch.cat(xs), torch.cat(ys)
@@ -52,7 +69,8 @@ def build(cfg: Stage1Config, latent_channels: int, cond_channels: int, sample_si
     return LatentDiffusion(latent_channels=latent_channels, cond_channels=cond_channels, sample_size=sample_size,
                            block_out_channels=u.block_out_channels, layers_per_block=u.layers_per_block,
                            cross_attention_dim=u.cross_attention_dim, attention_head_dim=u.attention_head_dim,
-                           norm_num_groups=u.norm_num_groups, time_embedding=u.time_embedding)
+                           norm_num_groups=u.norm_num_groups, time_embedding=u.time_embedding,
+                           self_attention=u.self_attention, coordinates=u.coordinates, prediction=cfg.prediction)
 
 
 def check_latents(cfg: Stage1Config, sample_size: int, where: str) -> None:
@@ -71,52 +89,115 @@ def noised_batch(rng: np.random.Generator, z0: torch.Tensor, abar: torch.Tensor,
     index = torch.from_numpy(rng.choice(len(z0), size=batch_size, replace=len(z0) < batch_size))
     t = torch.from_numpy(rng.integers(0, len(abar), batch_size))
     eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
-    a = abar[t].view(-1, 1, 1, 1)
-    return index, t, eps, a.sqrt() * z0[index] + (1 - a).sqrt() * eps
+    return index, t, eps, forward_process(z0[index], t, eps, abar)
 
 
-def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, out: Path,
+def forward_process(z0: torch.Tensor, t: torch.Tensor, eps: torch.Tensor, abar: torch.Tensor) -> torch.Tensor:
+    """z_t = √ᾱ_t · z_0 + √(1 - ᾱ_t) · ε (Eq. 4's noised latent), ᾱ indexed by t (B,)."""
+    a = abar[t].view(-1, *([1] * (z0.ndim - 1)))
+    return a.sqrt() * z0 + (1 - a).sqrt() * eps
+
+
+def diffusion_loss(output: torch.Tensor, eps: torch.Tensor, z0: torch.Tensor, t: torch.Tensor, abar: torch.Tensor, *,
+                   prediction: str, min_snr: float) -> torch.Tensor:
+    """Eq. 4 for a network that outputs ``prediction`` (diffusers' names): ``epsilon`` (ε, Eq. 4
+    as written), ``sample`` (z_0) or ``v_prediction`` (v = √ᾱ ε - √(1-ᾱ) z_0). The three share
+    one minimiser, ε̂ = (z_t - √ᾱ ẑ_0) / √(1-ᾱ); they weigh the timesteps differently. With
+    ``min_snr`` > 0 each sample's squared error is weighted by Min-SNR-γ (Hang et al. 2023), in
+    ε terms ``min(SNR, γ) / SNR``: ``min(SNR, γ)`` for ``sample``, ``min(SNR, γ) / (SNR + 1)`` for
+    ``v_prediction`` (SNR = ᾱ / (1 - ᾱ)); 0 leaves the plain mean squared error."""
+    a = abar[t].to(output.device).view(-1, *([1] * (z0.ndim - 1)))
+    target = {"epsilon": eps, "sample": z0, "v_prediction": a.sqrt() * eps - (1 - a).sqrt() * z0}[prediction]
+    per_sample = ((output.float() - target) ** 2).flatten(1).mean(1)
+    if not min_snr:
+        return per_sample.mean()
+    snr = (abar[t] / (1 - abar[t])).to(output.device)
+    weight = torch.clamp(snr, max=min_snr) / {"epsilon": snr, "sample": torch.ones_like(snr), "v_prediction": snr + 1}[prediction]
+    return (per_sample * weight).mean()
+
+
+def learning_rate(peak: float, step: int, total: int, *, warmup: int, schedule: str) -> float:
+    """Linear warm-up over ``warmup`` steps, then ``constant`` or a ``cosine`` decay to 10 % of
+    ``peak`` at ``total``; a function of the step, so a resumed run continues on the same curve."""
+    if step < warmup:
+        return peak * (step + 1) / warmup
+    if schedule == "constant":
+        return peak
+    progress = (step - warmup) / max(1, total - warmup)
+    return peak * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
+
+
+class EMA:
+    """Exponential moving average of a module's parameters (buffers copied): ``shadow``."""
+
+    def __init__(self, model: torch.nn.Module, decay: float):
+        self.decay = decay
+        self.shadow = copy.deepcopy(model).eval().requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        for s, p in zip(self.shadow.parameters(), model.parameters()):
+            s.lerp_(p.detach(), 1 - self.decay)
+        for s, b in zip(self.shadow.buffers(), model.buffers()):
+            s.copy_(b)
+
+
+def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, seed: int, views: int, out: Path,
           log_fn: Callable[[dict, int], None]) -> LatentDiffusion:
-    """Eq. 4: E_{t, ε} ||ε - ε_θ(√ᾱ_t x^f + √(1-ᾱ_t) ε, y^f, t)||², resuming from checkpoints."""
-    seed_everything(cfg.seed)
+    """Eq. 4: E_{t, ε} ||ε - ε_θ(√ᾱ_t x^f + √(1-ᾱ_t) ε, y^f, t)||², resuming from checkpoints.
+
+    latents, cond: (N, c, h, w) training x^f and y^f (augmented rows included); views: how many
+    distinct views they come from (an epoch is ``views / batch_size`` steps). Returns the EMA
+    weights in eval mode.
+    """
+    seed_everything(seed)
     model = build(cfg, latents.shape[1], cond.shape[1], latents.shape[-1])
     model.set_statistics(latents, cond)
+    ema = EMA(model, cfg.ema_decay)
     z0, c = model.normalize(latents), model.normalize_cond(cond)
     abar = torch.from_numpy(alphas_cumprod(betas(cfg.schedule, cfg.train_timesteps))).float()
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
-    total = steps_for(cfg.epochs, len(z0), cfg.batch_size)
-    key = hash_obj({"cfg": as_dict(cfg), "latents": float(latents.double().sum()), "n": len(latents)})[:16]
-    ckpt_dir = run_checkpoint_dir(out / "checkpoints", key)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=0.0)
+    total = steps_for(cfg.epochs, views, cfg.batch_size)
+    key = hash_obj({"cfg": as_dict(cfg), "seed": seed, "latents": float(latents.double().sum()),
+                    "cond": float(cond.double().sum()), "n": len(latents)})[:16]
+    ckpt_dir = run_checkpoint_dir(out / "checkpoints" / f"seed_{seed}", key)
 
     def step_fn(step: int) -> dict[str, float]:
-        index, t, eps, z_t = noised_batch(batch_rng(cfg.seed, step), z0, abar, cfg.batch_size)
-        t, eps, z_t, cond_t = distributed.local_batch(t, eps, z_t, c[index])
+        lr = learning_rate(cfg.lr, step, total, warmup=cfg.warmup_steps, schedule=cfg.lr_schedule)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        index, t, eps, z_t = noised_batch(batch_rng(seed, step), z0, abar, cfg.batch_size)
+        t, eps, z_t, cond_t, z0_t = distributed.local_batch(t, eps, z_t, c[index], z0[index])
+        dev = distributed.device()
         model.train()
-        loss = F.mse_loss(model(z_t, t, cond_t), eps)
+        loss = diffusion_loss(model(z_t.to(dev), t.to(dev), cond_t.to(dev)), eps.to(dev), z0_t.to(dev), t, abar,
+                              prediction=cfg.prediction, min_snr=cfg.min_snr)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        norm = grad_norm(model.parameters())
-        return {"loss": float(loss.detach()), "grad_norm": norm}
+        ema.update(model)
+        return {"loss": float(loss.detach()), "grad_norm": grad_norm(model.parameters()), "lr": lr}
 
-    with distributed.on_device(model):
-        run_loop(name="stage1", total_steps=total, step_fn=step_fn,
-                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+    with distributed.on_device(model, ema.shadow):
+        run_loop(name=f"stage1 seed {seed}", total_steps=total, step_fn=step_fn,
+                 get_state=lambda: {"model": model.state_dict(), "ema": ema.shadow.state_dict(), "opt": opt.state_dict()},
+                 set_state=lambda s: (model.load_state_dict(s["model"]), ema.shadow.load_state_dict(s["ema"]),
+                                      opt.load_state_dict(s["opt"])),
                  checkpoint_dir=ckpt_dir, checkpoint_every=cfg.checkpoint_every,
-                 log_fn=lambda values, step: log_fn({f"stage1.{k}": v for k, v in values.items()}, step))
-    return model.eval()
+                 log_fn=lambda values, step: log_fn({f"stage1.seed_{seed}.{k}": v for k, v in values.items()}, step))
+    return ema.shadow.eval()
 
 
 @torch.no_grad()
-def sample_logits(model: LatentDiffusion, x_vq: BEVVQVAE, cond: torch.Tensor, *, cfg: Stage1Config,
+def sample_logits(model: LatentDiffusion, x_vq, cond: torch.Tensor, *, cfg: Stage1Config,
                   generator: torch.Generator, adapter_features: list[torch.Tensor] | None = None,
                   num_steps: int | None = None, sampler: str | None = None) -> torch.Tensor:
     """Sample x^f for a batch of y^f (pre-quant, unnormalised) and decode: logits (B, C, H, W).
 
     y^f is normalised once for the whole reverse process (it does not change across steps).
     """
-    scheduler = make_scheduler(sampler or cfg.sampler, betas(cfg.schedule, cfg.train_timesteps))
+    scheduler = make_scheduler(sampler or cfg.sampler, betas(cfg.schedule, cfg.train_timesteps),
+                               prediction_type=model.config.get("prediction", "epsilon"))
     c = model.normalize_cond(cond)
     z = sample(model, scheduler, shape=(cond.shape[0], model.config["latent_channels"], *cond.shape[2:]),
                num_steps=num_steps or cfg.sample_steps, generator=generator, cond=c,
@@ -138,24 +219,6 @@ def tune_thresholds(logits: torch.Tensor, truth: torch.Tensor, cfg: Stage1Config
     return {**best, "noise_std": cfg.postprocess.noise_std}
 
 
-def generation_metrics(occupancy: np.ndarray, truth: np.ndarray, grid: Grid) -> dict[str, float]:
-    """IoU/precision/recall over the split, JSD/MMD (r2dm preset) and mean Chamfer to the truth.
-
-    occupancy, truth: (B, C, H, W) bool. Clouds are the occupied voxel centres (TYP §4.1) on
-    both sides, so the numbers measure generation, not voxelization.
-    """
-    scores = occupancy_iou(occupancy, truth)
-    gen = [voxel_centers(o.transpose(1, 2, 0), grid) for o in occupancy]
-    real = [voxel_centers(t.transpose(1, 2, 0), grid) for t in truth]
-    usable = [i for i in range(len(gen)) if len(gen[i]) and len(real[i])]
-    scores["empty_generated"] = sum(len(g) == 0 for g in gen)
-    if usable:
-        scores["jsd_r2dm"] = jsd_bev([real[i] for i in usable], [gen[i] for i in usable], preset="r2dm")
-        scores["mmd_r2dm"] = mmd_bev([real[i] for i in usable], [gen[i] for i in usable], preset="r2dm")
-        scores["chamfer_m"] = float(np.mean([chamfer_distance(gen[i], real[i]) for i in usable]))
-    return scores
-
-
 def sampling_config(cfg: Stage1Config, saved: dict, sampler: str, steps: int) -> Stage1Config:
     """Stage 1's sampling settings with another sampler and step count, for the model ``saved``
     (:func:`load_model`): its own β schedule and T, whatever params.yaml says now; DDIM's η = 0."""
@@ -164,13 +227,10 @@ def sampling_config(cfg: Stage1Config, saved: dict, sampler: str, steps: int) ->
 
 
 def save_model(model: LatentDiffusion, cfg: Stage1Config, thresholds: dict, folder: Path) -> None:
-    save_torch(folder / "model.pt", {"config": model.config, "state_dict": model.state_dict(), "schedule": cfg.schedule,
-                                     "train_timesteps": cfg.train_timesteps, "postprocess": thresholds})
-    write_json(folder / "postprocess.json", thresholds)
+    save_module(folder, model, model.config, schedule=cfg.schedule, train_timesteps=cfg.train_timesteps,
+                postprocess=thresholds)
 
 
 def load_model(folder: Path) -> tuple[LatentDiffusion, dict]:
-    saved = load_torch(folder / "model.pt", "stage-1 model (run the stage1 stage")
-    model = LatentDiffusion.from_config(saved["config"])
-    model.load_state_dict(saved["state_dict"])
-    return model.eval(), saved
+    """(the EMA model, its saved fields: ``schedule``, ``train_timesteps``, ``postprocess``)."""
+    return load_module(folder, LatentDiffusion.from_config, STAGE)

@@ -49,14 +49,37 @@ class ViewSet:
         """(B, 1, H, W) float32 box maps y."""
         return np.stack([densify(self.records[i], self.grid)[1].transpose(2, 0, 1) for i in index]).astype(np.float32)
 
-    def batch(self, index, *, flips: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(x, y) tensors; ``flips[b]`` mirrors sample b across the x axis (y -> -y), a valid
-        LiDAR augmentation since a mirrored street is still a street; boxes mirror with it."""
+    def batch(self, index, *, flips: np.ndarray | None = None,
+              dihedral: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x, y) tensors of views ``index``, optionally transformed per sample.
+
+        flips[b]: mirror sample b across the x axis (y -> -y). dihedral[b] in 0..7: one of the
+        8 symmetries of the square grid (:func:`dihedral`). Both are valid LiDAR augmentations:
+        a spinning sensor at the grid's centre sees a rotated or mirrored street the same way,
+        and the boxes turn with it.
+        """
         x, y = self.occupancy(index), self.box_maps(index)
         if flips is not None:
             x[flips] = x[flips][:, :, :, ::-1]
             y[flips] = y[flips][:, :, :, ::-1]
+        if dihedral is not None:
+            x = np.stack([apply_dihedral(v, int(k)) for v, k in zip(x, dihedral)])
+            y = np.stack([apply_dihedral(v, int(k)) for v, k in zip(y, dihedral)])
         return torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(y))
+
+
+def apply_dihedral(grid: np.ndarray, k: int) -> np.ndarray:
+    """Symmetry ``k`` (0..7) of the square BEV grid about its centre: (..., H, W) -> same shape.
+
+    k = 0..3 rotate by k·90° (x towards y); k = 4..7 mirror across the x axis first (y -> -y).
+    k = 0 is the identity. With H = W and the sensor at the centre, every k maps a view to a
+    view the same sensor could have taken.
+    """
+    if not 0 <= k < 8:
+        raise TypError("apply_dihedral", "k", "an integer in 0..7", k)
+    if k >= 4:
+        grid = grid[..., ::-1]
+    return np.rot90(grid, k % 4, axes=(-2, -1))
 
 
 def load_views(store_root: Path, *, dataset: str, split: str, ego_only: bool = True) -> ViewSet:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from typ.config import GridConfig
+from typ.config import GridConfig, VoxelizeConfig
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene
 import typ.formats.opv2v
 import typ.store
@@ -62,9 +62,11 @@ def stale_outputs(items: list[ScenarioInput], out: Path) -> list[Path]:
     return [s.path for s in list_scenes(out) if s.path not in wanted]
 
 
-def run_scene(item: ScenarioInput, *, grid: Grid, out: Path) -> dict:
-    """Voxelize every (agent, timestamp) of one scenario; skip it when its inputs are unchanged."""
+def run_scene(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict:
+    """Voxelize every (agent, timestamp) of one scenario on its dataset's sensor grid
+    (:meth:`VoxelizeConfig.sensor_grid`); skip it when its inputs are unchanged."""
     path = scene_path(out, item.dataset, item.split, item.name)
+    grid = cfg.sensor_grid(item.dataset, where=str(item.folder))
     digest = input_hash(item, grid)
     base = {"scenario": item.name, "dataset": item.dataset, "split": item.split}
     if stored_input_hash(path) == digest:

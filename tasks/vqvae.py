@@ -2,7 +2,8 @@
 
 Trained on the target domain's ego views only; reconstruction IoU/precision/recall on the
 held-out split go to the stage metrics. Output per model (``<out>/x``, ``<out>/y``):
-``model.pt`` (config + weights, written atomically once training finished) and
+``config.json`` + ``model.safetensors`` (:mod:`tasks.artifacts`, written atomically once
+training finished) and
 ``checkpoints/<run key>/step_*.pt`` (resume points; a changed config or data starts a new key).
 """
 from __future__ import annotations
@@ -13,14 +14,15 @@ from typing import Callable
 import numpy as np
 import torch
 
-from models.vqvae import BEVVQVAE
-from tasks.training import batch_rng, grad_norm, load_torch, run_checkpoint_dir, run_loop, save_torch, seed_everything, steps_for
+from models.vqvae import BEVVQVAE, PooledBoxMap
+from tasks.artifacts import load_module, save_module
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ import distributed
 from typ.config import AutoencoderConfig, VQVAEStageConfig, as_dict
 from typ.errors import TypError
-from typ.io import hash_obj, write_json
-from typ.metrics import occupancy_iou
+from typ.io import hash_obj
+from typ.metrics.truth import occupancy_iou
 
 KINDS = ("x", "y")
 
@@ -28,7 +30,8 @@ KINDS = ("x", "y")
 def build(kind: str, cfg: AutoencoderConfig, grid_channels: int) -> BEVVQVAE:
     return BEVVQVAE(in_channels=grid_channels if kind == "x" else 1, latent_channels=cfg.latent_channels,
                     block_out_channels=cfg.block_out_channels, num_codes=cfg.num_codes,
-                    norm_num_groups=cfg.norm_num_groups)
+                    norm_num_groups=cfg.norm_num_groups, quantizer=cfg.quantizer, ema_decay=cfg.ema_decay,
+                    dead_code_threshold=cfg.dead_code_threshold)
 
 
 def check_grid(views: ViewSet, cfg: VQVAEStageConfig, where: str) -> None:
@@ -39,15 +42,19 @@ def check_grid(views: ViewSet, cfg: VQVAEStageConfig, where: str) -> None:
                        f"a downsampling factor ({factor}) that divides the grid's H, W = {H}, {W}", factor)
 
 
-def _inputs(views: ViewSet, kind: str, index, flips=None) -> torch.Tensor:
-    x, y = views.batch(index, flips=flips)
+def _inputs(views: ViewSet, kind: str, index, dihedral=None) -> torch.Tensor:
+    x, y = views.batch(index, dihedral=dihedral)
     return x if kind == "x" else y
 
 
 def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
-              log_fn: Callable[[dict, int], None]) -> BEVVQVAE:
+              log_fn: Callable[[dict, int], None]) -> BEVVQVAE | PooledBoxMap:
     """Train one VQ-VAE (resuming if a checkpoint of the same run key exists); returns it."""
     ae = getattr(cfg, kind)
+    if kind == "y" and ae.encoding == "pool":
+        pooled = PooledBoxMap(downsample=2 ** (len(cfg.x.block_out_channels) - 1))
+        save_model(pooled, out / kind)
+        return pooled
     seed_everything(cfg.seed)
     model = build(kind, ae, views.grid.shape[2])
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -59,10 +66,10 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
     def step_fn(step: int) -> dict[str, float]:
         rng = batch_rng(cfg.seed, step)
         index = rng.choice(len(views), size=cfg.batch_size, replace=len(views) < cfg.batch_size)
-        flips = rng.random(cfg.batch_size) < 0.5
-        index, flips = distributed.local_batch(index, flips)  # only this rank's views are read
+        dihedral = rng.integers(0, 8, cfg.batch_size)  # rotations and mirrors of the view (apply_dihedral)
+        index, dihedral = distributed.local_batch(index, dihedral)  # only this rank's views are read
         model.train()
-        loss, _, parts = model.loss(_inputs(views, kind, index, flips).to(distributed.device()), gamma=ae.gamma)
+        loss, _, parts = model.loss(_inputs(views, kind, index, dihedral).to(distributed.device()), gamma=ae.gamma)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -79,33 +86,41 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
     return model
 
 
-def save_model(model: BEVVQVAE, folder: Path) -> None:
-    save_torch(folder / "model.pt", {"config": model.config, "state_dict": model.state_dict()})
-    write_json(folder / "config.json", model.config)
+def save_model(model: BEVVQVAE | PooledBoxMap, folder: Path) -> None:
+    """``folder/model.safetensors`` + ``folder/config.json`` (:mod:`tasks.artifacts`)."""
+    save_module(folder, model, model.config)
 
 
-def load_model(folder: Path) -> BEVVQVAE:
-    saved = load_torch(folder / "model.pt", "VQ-VAE (run the vqvae stage")
-    model = BEVVQVAE.from_config(saved["config"])
-    model.load_state_dict(saved["state_dict"])
-    return model.eval()
+def build_from_config(config: dict) -> BEVVQVAE | PooledBoxMap:
+    return PooledBoxMap.from_config(config) if config.get("kind") == "pool" else BEVVQVAE.from_config(config)
+
+
+def load_model(folder: Path, stage: str = "vqvae") -> BEVVQVAE | PooledBoxMap:
+    """A VQ-VAE (or the pooled box-map encoder) saved by :func:`save_model`; a missing or
+    damaged folder raises TypError naming the file and ``stage``, the stage that writes it."""
+    return load_module(folder, build_from_config, stage)[0]
 
 
 @torch.no_grad()
 def evaluate(model: BEVVQVAE, kind: str, views: ViewSet, *, threshold: float, batch_size: int) -> dict:
-    """Reconstruction IoU / precision / recall (voxel level, summed over the split) and codebook use."""
+    """Reconstruction IoU / precision / recall (voxel level, pooled over the split) and codebook
+    use on ``views``: ``codes_used`` (share of the codebook that some cell picks) and
+    ``perplexity`` (exp of the entropy of the code histogram: the number of equally used codes
+    that would give the same entropy)."""
     model.eval()
     preds, truths = [], []
-    used: set[int] = set()
+    counts = torch.zeros(model.config["num_codes"], dtype=torch.float64)
     for start in range(0, len(views), batch_size):
         index = np.arange(start, min(start + batch_size, len(views)))
         target = _inputs(views, kind, index)
         out = model(target)
         preds.append((torch.sigmoid(out.logits) > threshold).numpy())
         truths.append((target > 0.5).numpy())
-        used.update(out.indices.unique().tolist())
+        counts += torch.bincount(out.indices.flatten(), minlength=len(counts)).double()
     # one IoU over every voxel of the split (not a mean of per-view IoUs)
     scores = occupancy_iou(np.concatenate(preds), np.concatenate(truths))
-    scores["codes_used"] = len(used) / model.config["num_codes"]
+    p = counts[counts > 0] / counts.sum()
+    scores["codes_used"] = float((counts > 0).double().mean())
+    scores["perplexity"] = float(torch.exp(-(p * p.log()).sum()))
     scores["views"] = len(views)
     return scores

@@ -67,7 +67,7 @@ def test_small_params_scale_every_split_and_load():
     from typ.config import config_from_dict
 
     params = bench.small_params(3)
-    assert params["simulate"]["scenarios"]["target"] == {"train": 3, "val": 3, "test": 3}
+    assert params["simulate"]["scenarios"]["target"] == {"train": 3, "val": 3, "test": 3, "pretrain": 3}
     assert params["simulate"]["scenarios"]["real_cav"]["test"] == 3
     assert bench.SMALL["simulate"]["scenarios"]["target"]["train"] == 1          # not modified in place
     assert bench.with_added_scenario(params)["simulate"]["scenarios"]["target"]["test"] == 4

@@ -34,7 +34,7 @@ def test_override_is_key_by_key_and_keeps_other_defaults():
 
 
 @pytest.mark.parametrize("raw, field, expected", [
-    ({"profile": "huge"}, "profile", "one of ['tiny', 'paper']"),
+    ({"profile": "huge"}, "profile", "one of ['tiny', 'small', 'paper']"),
     ({"simulate": {"frames": "3"}}, "simulate.frames", "an integer"),
     ({"simulate": {"frame": 3}}, "simulate.frame", "known keys"),
     ({"simulate": {"frames": 0}}, "simulate.frames", "> 0"),
@@ -79,10 +79,28 @@ def test_flatten_gives_dotted_names():
 
 
 def test_every_profile_loads_and_has_the_same_keys():
-    a, b = yaml.safe_load(open("typ/profiles.yaml")).values()
-    def keys(d):  # scenario counts per split may differ between profiles
-        return {k for k in flatten(d) if not k.startswith("simulate.scenarios")}
+    from typ.config import as_dict, profile_defaults
 
-    assert keys(a) == keys(b)
-    for profile in ("tiny", "paper"):
+    profiles = yaml.safe_load(open("typ/profiles.yaml"))
+    assert set(profiles) == {"tiny", "small", "paper"} and profiles["small"]["extends"] == "tiny"
+
+    def keys(d):  # scenario counts per split and per-domain lengths may differ between profiles
+        return {k for k in flatten(d) if not k.startswith(("simulate.scenarios", "simulate.domains"))}
+
+    assert keys(profiles["tiny"]) == keys(profiles["paper"])
+    for profile in profiles:
         config_from_dict({"profile": profile})
+    # small inherits what it does not set, and overrides what it sets
+    tiny, small = as_dict(config_from_dict({"profile": "tiny"})), as_dict(config_from_dict({"profile": "small"}))
+    assert small["stage1"]["replicas"] == 3 and small["stage1"]["unet"] == tiny["stage1"]["unet"]
+    assert small["simulate"]["scenarios"]["target"]["train"] > tiny["simulate"]["scenarios"]["target"]["train"]
+    assert profile_defaults("small")["voxelize"] == profile_defaults("tiny")["voxelize"]
+
+
+def test_per_domain_lengths_are_replaced_whole_by_params():
+    tiny = config_from_dict({}).simulate
+    assert tiny.for_domain("target") == (2, 3, 3)              # the profile's target scenes
+    flat = config_from_dict({"simulate": {"domains": {}, "frames": 5, "agents_min": 2, "agents_max": 2}}).simulate
+    assert flat.domains == {} and flat.for_domain("target") == flat.for_domain("source") == (5, 2, 2)
+    one = config_from_dict({"simulate": {"domains": {"source": {"frames": 3, "agents_min": 2, "agents_max": 2}}}})
+    assert set(one.simulate.domains) == {"source"}              # not merged with the profile's target entry

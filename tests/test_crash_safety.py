@@ -209,20 +209,19 @@ def test_rerun_after_kill_equals_uninterrupted_byte_for_byte(reference, crashed,
 @pytest.mark.slow
 @slow
 def test_killed_training_resumes_to_the_uninterrupted_model(reference, crashed):
-    import torch
-
+    from tasks.artifacts import read_weights
     from tasks.training import checkpoints
 
     root, seen = crashed
     after_kill = seen["vqvae"]
     assert any("/checkpoints/" in rel for rel in after_kill)
-    assert "artifacts/vqvae/x/model.pt" not in after_kill, "x finished training before the kill"
+    assert "artifacts/vqvae/x/model.safetensors" not in after_kill, "x finished training before the kill"
     assert {rel: state for rel, state in after_kill.items() if state != "ok"} == {}  # every visible file is whole
     for kind in ("x", "y"):
         run_dirs = list((root / "artifacts" / "vqvae" / kind / "checkpoints").iterdir())
         assert len(run_dirs) == 1 and checkpoints(run_dirs[0]), kind
-        got = torch.load(root / "artifacts" / "vqvae" / kind / "model.pt", weights_only=False)["state_dict"]
-        want = torch.load(reference / "artifacts" / "vqvae" / kind / "model.pt", weights_only=False)["state_dict"]
+        got = read_weights(root / "artifacts" / "vqvae" / kind, "vqvae")
+        want = read_weights(reference / "artifacts" / "vqvae" / kind, "vqvae")
         assert got.keys() == want.keys()
         worst = max((got[k].double() - want[k].double()).abs().max().item() for k in got if got[k].numel())
         assert worst <= MODEL_ATOL, (kind, worst)

@@ -19,8 +19,8 @@ import yaml
 
 PARAMS = {
     "profile": "tiny",
-    "simulate": {"frames": 2, "azimuth_step_deg": 1.5, "agents_min": 2, "agents_max": 2, "workers": 2,
-                 "scenarios": {"source": {"train": 1, "test": 0}, "target": {"train": 2, "val": 0, "test": 0},
+    "simulate": {"frames": 2, "azimuth_step_deg": 1.5, "agents_min": 2, "agents_max": 2, "workers": 2, "domains": {},
+                 "scenarios": {"source": {"train": 1, "test": 0}, "target": {"train": 2, "val": 0, "test": 0, "pretrain": 0},
                                "real_cav": {"train": 0, "test": 0}}},
     "voxelize": {"workers": 2},
 }

@@ -75,7 +75,7 @@ def _stage1(out: Path) -> tuple[dict[str, torch.Tensor], list[int]]:
     rows: list[int] = []
     handle = _rows_seen(LatentDiffusion, rows)
     try:
-        model = stage1.train(cfg, x, y, out=out, log_fn=lambda values, step: None)
+        model = stage1.train(cfg, x, y, seed=cfg.seed, views=len(x), out=out, log_fn=lambda values, step: None)
     finally:
         handle.remove()
     return {k: v.detach().clone() for k, v in model.state_dict().items()}, rows

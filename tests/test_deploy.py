@@ -24,8 +24,8 @@ from typ.errors import TypError
 
 PARAMS = {
     "profile": "tiny",
-    "simulate": {"frames": 2, "azimuth_step_deg": 1.5, "agents_min": 2, "agents_max": 2, "workers": 1,
-                 "scenarios": {"source": {"train": 0, "test": 0}, "target": {"train": 1, "val": 0, "test": 0},
+    "simulate": {"frames": 2, "azimuth_step_deg": 1.5, "agents_min": 2, "agents_max": 2, "workers": 1, "domains": {},
+                 "scenarios": {"source": {"train": 0, "test": 0}, "target": {"train": 1, "val": 0, "test": 0, "pretrain": 0},
                                "real_cav": {"train": 0, "test": 0}}},
     "serve": {"watch_cron": "* * * * *"},
 }

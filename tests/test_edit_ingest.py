@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from tasks.edit import BoxEdit, _in_cells, edit_boxes, footprint_mask
-from tasks.generate import VEHICLE_LABELS, candidate_ids, new_skip_counts
+from tasks.generate import candidate_ids, new_skip_counts
+from typ.scene import VEHICLE_LABELS
 from tasks.ingest import read_frames, to_sensor_frame, write_single_agent
 from typ.config import config_from_dict
 from typ.errors import TypError
@@ -89,23 +90,38 @@ def test_kitti_frames_become_single_agent_opv2v_scenarios(tmp_path):
         read_frames("kitti", tmp_path)
 
 
-def _box_following_model(x_e, y_r, models, seed):
+class _BoxFollowingPipe:
     """Stands in for the diffusion model: ground everywhere, a car in every box of y_r.
 
     It makes the edit's plumbing observable: an added box can only appear, and a removed one
-    only vanish, if edit_view conditions on the *edited* box map.
+    only vanish, if edit_view conditions on the *edited* box map. Its points are the real
+    pipeline's (one point per voxel, spread inside it).
     """
-    occ = np.zeros((len(y_r), GRID.shape[2], *GRID.shape[:2]), dtype=bool)
-    occ[:, 0] = True
-    occ[:, 1:4] |= y_r[:, :1].astype(bool)
-    return occ
+
+    conditions = 0
+
+    def occupancy(self, x_e, y_r, *, seed, resim=None):
+        occ = np.zeros((len(y_r), GRID.shape[2], *GRID.shape[:2]), dtype=bool)
+        occ[:, 0] = True
+        occ[:, 1:4] |= y_r[:, :1].astype(bool)
+        return occ
+
+    def points(self, occupancy, grid, seed):
+        from tasks.pipeline import PointStats, occupancy_to_points
+
+        return occupancy_to_points(occupancy, grid, PointStats.single(), np.random.default_rng(seed))
+
+
+def _generator():
+    from tasks.generate import Generator
+
+    return Generator(_BoxFollowingPipe(), {"kitti": 1.73}, digest="")
 
 
 def test_edit_view_makes_occupancy_appear_and_disappear_in_the_edited_footprints(monkeypatch):
     import tasks.edit as edit_module
     from typ.voxel import voxelize
 
-    monkeypatch.setattr(edit_module, "generate_occupancy", _box_following_model)
     rng = np.random.default_rng(0)
     ground = np.c_[rng.uniform(-50, 50, (20000, 2)), np.full(20000, -2.7), np.zeros(20000)]
     car = np.c_[rng.uniform(8.5, 11.5, (400, 1)), rng.uniform(-0.8, 0.8, (400, 1)), rng.uniform(-2.2, -1.0, (400, 1)),
@@ -113,7 +129,7 @@ def test_edit_view_makes_occupancy_appear_and_disappear_in_the_edited_footprints
     view = AgentView("1", np.concatenate([ground, car]).astype(np.float32), np.eye(4),
                      np.array([[10.0, 0.0, -1.6, 4.0, 2.0, 1.5, 0.0]]), ("car",), np.array([5]))
     added_at = (-20.0, 15.0, 0.0)
-    result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=(added_at,)), models=None, grid=GRID, seed=0)
+    result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=(added_at,)), generator=_generator(), grid=GRID, seed=0)
 
     def above_ground(points, box):
         occ = voxelize(points, GRID)[:, :, 1:]
@@ -131,7 +147,7 @@ def test_edit_view_makes_occupancy_appear_and_disappear_in_the_edited_footprints
     kept = result.view.points[~_in_cells(result.view.points, result.footprint, GRID)]
     assert np.array_equal(np.sort(kept, axis=0), np.sort(view.points[outside], axis=0))
     with pytest.raises(TypError, match="at least one"):
-        edit_module.edit_view(view, BoxEdit(), models=None, grid=GRID, seed=0)
+        edit_module.edit_view(view, BoxEdit(), generator=_generator(), grid=GRID, seed=0)
 
 
 def test_edit_figure_shows_before_after_and_the_changed_cells(monkeypatch):
@@ -139,14 +155,13 @@ def test_edit_figure_shows_before_after_and_the_changed_cells(monkeypatch):
     from typ import viz
     from typ.voxel import voxelize
 
-    monkeypatch.setattr(edit_module, "generate_occupancy", _box_following_model)
     rng = np.random.default_rng(0)
     ground = np.c_[rng.uniform(-50, 50, (20000, 2)), np.full(20000, -2.7), np.zeros(20000)]
     car = np.c_[rng.uniform(8.5, 11.5, (400, 1)), rng.uniform(-0.8, 0.8, (400, 1)), rng.uniform(-2.2, -1.0, (400, 1)),
                 np.zeros((400, 1))]
     view = AgentView("1", np.concatenate([ground, car]).astype(np.float32), np.eye(4),
                      np.array([[10.0, 0.0, -1.6, 4.0, 2.0, 1.5, 0.0]]), ("car",), np.array([5]))
-    result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=((-20.0, 15.0, 0.0),)), models=None, grid=GRID,
+    result = edit_module.edit_view(view, BoxEdit(remove=(5,), add=((-20.0, 15.0, 0.0),)), generator=_generator(), grid=GRID,
                                    seed=0)
     fig = edit_module.edit_figure(view, result, GRID, title="edit")
     assert [ax.get_title() for ax in fig.axes if ax.get_title()] == ["before", "after",

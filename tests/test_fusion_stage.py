@@ -44,14 +44,14 @@ def _simulate(folder, domain: str, seed: int, agents: int, azimuth: float = 1.5)
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
     """data/sim with real_cav train (2 scenarios) / test (1), source train (1); data/generated with
-    real_cav/train (cooperating clouds jittered: a stand-in for TYP's) and target/train (ColWaymo)."""
+    real_cav/train (cooperating clouds jittered: a stand-in for TYP's) and target/pretrain (ColWaymo)."""
     root = tmp_path_factory.mktemp("fusion")
     sim, gen = root / "data" / "sim", root / "data" / "generated"
     for seed in (1, 2):
         _simulate(sim / "real_cav" / "train", "real_cav", seed, 3)
     _simulate(sim / "real_cav" / "test", "real_cav", 3, 3)
     _simulate(sim / "source" / "train", "source", 4, 2, azimuth=3.0)
-    _simulate(gen / "target" / "train", "target", 5, 2, azimuth=3.0)
+    _simulate(gen / "target" / "pretrain", "target", 5, 2, azimuth=3.0)
     rng = np.random.default_rng(0)
     for folder in list_scenarios(sim / "real_cav" / "train"):
         for ts in ("000000", "000001"):

@@ -85,7 +85,7 @@ def real_root(tmp_path_factory) -> Path:
 def params(data_root: str, **blocks) -> dict:
     out = {"profile": "tiny",
            "simulate": {"sources": {"target": data_root}, "workers": 1,
-                        "scenarios": {"source": {"train": 0, "test": 0}, "target": dict(SPLITS),
+                        "scenarios": {"source": {"train": 0, "test": 0}, "target": {**SPLITS, "pretrain": 0},
                                       "real_cav": {"train": 0, "test": 0}}},
            "voxelize": {"workers": 1},
            "vqvae": {"x": {"epochs": 1, "block_out_channels": [8, 16]}, "y": {"epochs": 1, "block_out_channels": [8, 16]},
@@ -134,7 +134,8 @@ def test_the_first_stages_run_on_a_real_layout_folder(real_root, tmp_path, reque
     from typ.voxel import voxelize
 
     cfg = config_from_dict(params(str(real_root)))
-    grid = to_grid(cfg.voxelize.grid)
+    grid = cfg.voxelize.sensor_grid("target")  # the configured grid, lifted to the target sensor's height
+    assert grid.z_range[0] == pytest.approx(to_grid(cfg.voxelize.grid).z_range[0] - 2.2)
     src = sorted((real_root / "train").iterdir())[0]
     ego, ts = list_agents(src)[0], list_timestamps(src)[0]
     _, _, stored = read_scene_voxels(scene_path(project / "data" / "voxels", "target", "train", src.name))
@@ -144,8 +145,8 @@ def test_the_first_stages_run_on_a_real_layout_folder(real_root, tmp_path, reque
     assert vox["voxelized"] == 4 and vox["empty_views"] == 0
 
     # and the models trained on them
-    for path in ("artifacts/vqvae/x/model.pt", "artifacts/vqvae/y/model.pt", "artifacts/stage1/model.pt",
-                 "metrics/vqvae.json", "metrics/stage1.json"):
+    for path in ("artifacts/vqvae/x/model.safetensors", "artifacts/vqvae/y/config.json",
+                 "artifacts/stage1/seed_0/model.safetensors", "metrics/vqvae.json", "metrics/stage1.json"):
         assert (project / path).is_file(), path
 
     # a rerun takes nothing again; a changed file takes its scenario again

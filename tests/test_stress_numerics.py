@@ -291,14 +291,15 @@ def test_hinge_losses_at_saturation_gradients():
 # --- VQ codebook with dead codes ----------------------------------------------------------------
 
 def _vq(num_codes=16):
+    """The gradient-trained codebook (``quantizer="vq"``): its dead codes must get no gradient."""
     torch.manual_seed(0)
     return BEVVQVAE(in_channels=4, latent_channels=3, block_out_channels=(8, 16), num_codes=num_codes,
-                    norm_num_groups=4)
+                    norm_num_groups=4, quantizer="vq")
 
 
 def test_dead_codes_are_never_picked_get_no_gradient_and_do_not_move(one_torch_thread):
     model = _vq()
-    book = model.net.quantize.embedding.weight
+    book = model.codebook
     live = [2, 5]
     with torch.no_grad():
         book.copy_(1e3 + torch.arange(16.0)[:, None].expand(16, 3))  # dead: far from any latent
@@ -324,12 +325,12 @@ def test_dead_codes_are_never_picked_get_no_gradient_and_do_not_move(one_torch_t
 def test_codebook_of_identical_codes_is_finite_and_deterministic(one_torch_thread):
     model = _vq(num_codes=8)
     with torch.no_grad():
-        model.net.quantize.embedding.weight.fill_(0.25)
+        model.codebook.fill_(0.25)
     x = (torch.rand(2, 4, 16, 16, generator=torch.Generator().manual_seed(2)) < 0.2).float()
     loss, out, _ = model.loss(x, gamma=2.0)
     loss.backward()
     assert (out.indices == out.indices.flatten()[0]).all()  # ties go one way
-    assert torch.isfinite(model.net.quantize.embedding.weight.grad).all() and torch.isfinite(out.logits).all()
+    assert torch.isfinite(model.codebook.grad).all() and torch.isfinite(out.logits).all()
 
 
 # --- schedules at T = 1 and T = 1000 through every sampler ---------------------------------------

@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ import yaml
 from typ.errors import TypError
 
 PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
-PROFILES = ("tiny", "paper")
+PROFILES = ("tiny", "small", "paper")
 DOMAINS = ("source", "target", "real_cav")
 #: ``simulate.sources`` value for a domain the embedded simulator makes
 SIMULATE = "simulate"
@@ -50,6 +51,15 @@ class GridConfig:
 
 
 @dataclass(frozen=True)
+class DomainSimulation:
+    """Per-domain overrides of the simulation's ``frames`` and agent counts (unset: the defaults)."""
+
+    frames: int | None = None
+    agents_min: int | None = None
+    agents_max: int | None = None
+
+
+@dataclass(frozen=True)
 class SimulateConfig:
     """Embedded simulator: which scenarios of which sensor domain go to which split."""
 
@@ -69,17 +79,31 @@ class SimulateConfig:
     #: (``<root>/<split>/<scenario>/<agent>/<timestamp>.pcd|.yaml``: OPV2V, V2V4Real), relative to
     #: the project root or absolute; its scenarios are checked at start and linked into ``out``
     sources: dict[str, str] = field(default_factory=dict)
+    #: domain -> frames / agents_min / agents_max for that domain's scenarios
+    domains: dict[str, DomainSimulation] = field(default_factory=dict)
 
     def source_root(self, domain: str) -> str | None:
         """The real dataset root of ``domain``, or None when the simulator makes it."""
         source = self.sources.get(domain, SIMULATE)
         return None if source == SIMULATE else source
 
+    def for_domain(self, domain: str) -> tuple[int, int, int]:
+        """(frames, agents_min, agents_max) of ``domain``'s scenarios."""
+        d = self.domains.get(domain, DomainSimulation())
+        return (d.frames if d.frames is not None else self.frames,
+                d.agents_min if d.agents_min is not None else self.agents_min,
+                d.agents_max if d.agents_max is not None else self.agents_max)
+
     def check(self, where: str, name: str) -> None:
-        _positive(where, f"{name}.frames", self.frames)
-        if not 1 <= self.agents_min <= self.agents_max <= 8:
-            raise TypError(where, f"{name}.agents_min/agents_max", "1 <= agents_min <= agents_max <= 8",
-                           [self.agents_min, self.agents_max])
+        checks = [(name, self.frames, self.agents_min, self.agents_max)]
+        for domain in self.domains:
+            if domain not in DOMAINS:
+                raise TypError(where, f"{name}.domains.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
+            checks.append((f"{name}.domains.{domain}", *self.for_domain(domain)))
+        for label, frames, lo, hi in checks:
+            _positive(where, f"{label}.frames", frames)
+            if not 1 <= lo <= hi <= 8:
+                raise TypError(where, f"{label}.agents_min/agents_max", "1 <= agents_min <= agents_max <= 8", [lo, hi])
         _positive(where, f"{name}.azimuth_step_deg", self.azimuth_step_deg)
         _positive(where, f"{name}.comm_range", self.comm_range)
         _positive(where, f"{name}.dt", self.dt)
@@ -100,9 +124,14 @@ class SimulateConfig:
 
 @dataclass(frozen=True)
 class VoxelizeConfig:
-    """Voxelize stage: every agent view under ``input`` onto ``grid``, stored per scene under ``out``."""
+    """Voxelize stage: every agent view under ``input`` onto ``grid``, stored per scene under ``out``.
+
+    ``grid.z_range`` is height above the ground under the sensor; ``mount_height`` gives each
+    dataset's LiDAR height above its ground (metres), so the ground lands in the same height
+    channel in every domain (TYP §4.1: the z range is dataset-dependent)."""
 
     grid: GridConfig
+    mount_height: dict[str, float]
     input: str
     out: str
     workers: int
@@ -110,6 +139,18 @@ class VoxelizeConfig:
     def check(self, where: str, name: str) -> None:
         self.grid.check(where, f"{name}.grid")
         _positive(where, f"{name}.workers", self.workers)
+        for dataset, height in self.mount_height.items():
+            if not (math.isfinite(height) and 0 <= height < 10):
+                raise TypError(where, f"{name}.mount_height.{dataset}", "a sensor height in [0, 10) m", height)
+
+    def sensor_grid(self, dataset: str, where: str = "voxelize") -> "Grid":
+        """The grid in the sensor frame of ``dataset``'s LiDAR (see :meth:`typ.voxel.Grid.for_sensor`)."""
+        from typ.voxel import Grid
+        if dataset not in self.mount_height:
+            raise TypError(where, f"voxelize.mount_height.{dataset}",
+                           f"the sensor height of dataset {dataset!r} (known: {sorted(self.mount_height)})", "missing")
+        g = self.grid
+        return Grid(g.x_range, g.y_range, g.z_range, g.shape).for_sensor(self.mount_height[dataset])
 
 
 @dataclass(frozen=True)
@@ -122,8 +163,18 @@ class AutoencoderConfig:
     norm_num_groups: int
     gamma: float
     epochs: int
+    #: "ema": EMA codebook with k-means init and dead-code restarts; "vq": Eq. 1's codebook term
+    quantizer: Literal["ema", "vq"] = "ema"
+    #: y only: "vqvae" (TYP: E_y, Q_y, G_y) or "pool" (the box map averaged per latent cell)
+    encoding: Literal["vqvae", "pool"] = "vqvae"
+    ema_decay: float = 0.9
+    dead_code_threshold: float = 1.0
 
     def check(self, where: str, name: str) -> None:
+        if not 0 < self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in (0, 1)", self.ema_decay)
+        if self.dead_code_threshold < 0:
+            raise TypError(where, f"{name}.dead_code_threshold", "an EMA cluster size >= 0", self.dead_code_threshold)
         if len(self.block_out_channels) < 1 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
             raise TypError(where, f"{name}.block_out_channels",
                            f"positive widths divisible by norm_num_groups={self.norm_num_groups}",
@@ -172,6 +223,10 @@ class UNetConfig:
     attention_head_dim: int
     norm_num_groups: int
     time_embedding: Literal["sinusoidal", "fourier"]
+    #: the transformer blocks' self-attention over latent cells (off: cross-attention only, 2x faster)
+    self_attention: bool = True
+    #: x, y, range channels as input (the scan pattern depends on where a cell is)
+    coordinates: bool = False
 
     def check(self, where: str, name: str) -> None:
         if len(self.block_out_channels) < 2 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
@@ -218,14 +273,25 @@ class Stage1Config:
     dataset: str
     train_split: str
     val_split: str
-    eval_split: str
     out: str
+    #: weights averaged with this decay sample the model (the training weights do not)
+    ema_decay: float = 0.999
+    warmup_steps: int = 100
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    #: models trained with seeds seed, seed + 1, ... (the first feeds later stages)
+    replicas: int = 1
+    #: what the UNet outputs (Eq. 4's minimiser either way): epsilon, sample (z_0) or v_prediction
+    prediction: Literal["epsilon", "sample", "v_prediction"] = "epsilon"
+    #: Min-SNR-γ loss weighting (0: the plain mean squared error of Eq. 4)
+    min_snr: float = 0.0
 
     def check(self, where: str, name: str) -> None:
         self.unet.check(where, f"{name}.unet")
         self.postprocess.check(where, f"{name}.postprocess")
         _positive_fields(self, where, name, "train_timesteps", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "eval_views")
+                         "eval_views", "warmup_steps", "replicas")
+        if not 0 <= self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
         if not 1 <= self.sample_steps <= self.train_timesteps:
             raise TypError(where, f"{name}.sample_steps", f"an integer in [1, train_timesteps={self.train_timesteps}]",
                            self.sample_steps)
@@ -251,10 +317,8 @@ class AdaptConfig:
     vqvae: str
     source_dataset: str
     source_split: str
-    source_eval_split: str
     target_dataset: str
     target_split: str
-    target_eval_split: str
     out: str
 
     def check(self, where: str, name: str) -> None:
@@ -266,7 +330,14 @@ class AdaptConfig:
 
 @dataclass(frozen=True)
 class Stage2Config:
-    """Stage ``stage2`` (TYP Eq. 5–7): a T2I-Adapter on x^f_e' trained on source tuples, UNet frozen."""
+    """Stage ``stage2`` (TYP Eq. 5–7): a T2I-Adapter on x^f_e' trained on source tuples, UNet frozen.
+
+    One adapter per stage-1 replica. ``resim`` also trains the re-simulation-conditioned
+    adapter (x^f_e' beside the re-simulated view's latent); ``one_stage`` also trains TYP
+    Table 5's one-stage model (UNet and adapter together from scratch on the source tuples,
+    for as many steps as stage 1 and stage 2 together); ``augment``: 1, 2 (mirror) or 8
+    (rotations and mirrors) symmetries per tuple; ``max_pairs``: source tuples used (0: all).
+    """
 
     adapter_res_blocks: int
     epochs: int
@@ -274,7 +345,6 @@ class Stage2Config:
     lr: float
     seed: int
     checkpoint_every: int
-    eval_pairs: int
     sim: str
     voxels: str
     vqvae: str
@@ -282,13 +352,22 @@ class Stage2Config:
     stage1: str
     source_domain: str
     source_split: str
-    target_domain: str
-    target_eval_split: str
     out: str
+    warmup_steps: int = 100
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    ema_decay: float = 0.999
+    augment: Literal[1, 2, 8] = 2
+    max_pairs: int = 0
+    resim: bool = False
+    one_stage: bool = False
 
     def check(self, where: str, name: str) -> None:
         _positive_fields(self, where, name, "adapter_res_blocks", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "eval_pairs")
+                         "warmup_steps")
+        if not 0 <= self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
+        if self.max_pairs < 0:
+            raise TypError(where, f"{name}.max_pairs", "a number of tuples >= 0 (0: all)", self.max_pairs)
 
 
 @dataclass(frozen=True)
@@ -299,7 +378,10 @@ class SelftrainConfig:
     (stage ``adapt``; off: by E_tgt, the adapter trained anew: "no adaptation");
     ``self_training`` — pseudo references (x̂_r, x_e', y_r) sampled in target scenes;
     ``dummy_ego`` — target ego views (x_r, y_r) with an empty ego, x_e = 0. ``ablation``
-    also trains and scores every row of Table 4, whatever the switches say.
+    also trains every row of Table 4, whatever the switches say. ``generator``: which adapter
+    the written generator (``<out>/generator``) carries: ``typ`` (the switches' variant) or
+    ``typ_resim`` (the same recipe on the re-simulation-conditioned adapter; needs
+    ``stage2.resim``). The generator samples with ``sampler`` / ``sample_steps``.
     """
 
     discriminator: bool
@@ -316,7 +398,6 @@ class SelftrainConfig:
     checkpoint_every: int
     sampler: Literal["ddim", "ddpm", "dpmsolver++", "unipc"]
     sample_steps: int
-    eval_pairs: int
     sim: str
     voxels: str
     vqvae: str
@@ -327,15 +408,20 @@ class SelftrainConfig:
     source_split: str
     target_domain: str
     target_split: str
-    target_eval_split: str
     out: str
+    warmup_steps: int = 50
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    ema_decay: float = 0.999
+    generator: Literal["typ", "typ_resim"] = "typ"
 
     def check(self, where: str, name: str) -> None:
         _positive_fields(self, where, name, "pseudo_references", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "sample_steps", "eval_pairs", "max_distance")
+                         "sample_steps", "max_distance", "warmup_steps")
         if not 0 <= self.min_distance < self.max_distance:
             raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
                            self.min_distance)
+        if not 0 <= self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
 
 
 @dataclass(frozen=True)
@@ -367,9 +453,8 @@ class GenerateConfig:
     seed: int
     input: str
     sets: tuple[GenerateSet, ...]
-    vqvae: str
-    stage1: str
-    adapter: str
+    #: the folder selftrain writes the trained generators to (``<generator>/generator/seed_<s>``)
+    generator: str
     out: str
     workers: int
 
@@ -578,8 +663,42 @@ class ServeConfig:
 
 
 @dataclass(frozen=True)
+class EvaluateConfig:
+    """Stage ``evaluate``: every benchmark table on held-out data, with bootstrap intervals.
+
+    Generation: (ego, reference) pairs of ``target_domain`` / ``target_split`` (at most
+    ``max_pairs``, 0: all), every method sampled once per training seed; ``gallery`` samples
+    rendered to ``reports/gallery``; ``n_boot`` bootstrap replicates for each interval.
+    """
+
+    seed: int
+    n_boot: int
+    max_pairs: int
+    gallery: int
+    target_domain: str
+    target_split: str
+    source_domain: str
+    source_split: str
+    sim: str
+    voxels: str
+    vqvae: str
+    adapt: str
+    stage1: str
+    stage2: str
+    selftrain: str
+    reports: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "n_boot")
+        for key in ("max_pairs", "gallery"):
+            if getattr(self, key) < 0:
+                raise TypError(where, f"{name}.{key}", "a count >= 0", getattr(self, key))
+
+
+@dataclass(frozen=True)
 class Config:
-    profile: Literal["tiny", "paper"]
+    profile: Literal["tiny", "small", "paper"]
     tracking: TrackingConfig
     simulate: SimulateConfig
     voxelize: VoxelizeConfig
@@ -590,13 +709,14 @@ class Config:
     selftrain: SelftrainConfig
     generate: GenerateConfig
     fusion: FusionConfig
+    evaluate: EvaluateConfig
     runtime: RuntimeConfig
     serve: ServeConfig
     source: str = field(default="params.yaml", compare=False)
 
     #: stage name -> attribute holding its block, in pipeline order
     STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2", "selftrain",
-                                                 "generate", "fusion")
+                                                 "generate", "fusion", "evaluate")
 
     def block(self, stage: str):
         if stage not in self.STAGES:
@@ -652,10 +772,18 @@ def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict |
 
 
 def profile_defaults(profile: str) -> dict:
+    """The defaults of ``profile`` in typ/profiles.yaml; a profile with ``extends: <other>``
+    is that profile's defaults with its own keys merged over them."""
     data = _profiles()
     if profile not in data:
         raise TypError(PROFILES_FILE, "profile", f"one of {sorted(data)}", profile)
-    return copy.deepcopy(data[profile])
+    own = copy.deepcopy(data[profile])
+    parent = own.pop("extends", None)
+    if parent is None:
+        return own
+    if parent == profile or parent not in data:
+        raise TypError(PROFILES_FILE, f"{profile}.extends", f"another profile of {sorted(data)}", parent)
+    return _deep_merge(profile_defaults(parent), own)
 
 
 @functools.lru_cache(maxsize=1)
@@ -665,10 +793,17 @@ def _profiles() -> dict:
     return yaml.load(PROFILES_FILE.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
+#: mappings that params.yaml replaces whole instead of key by key: ``simulate.domains: {}``
+#: drops the profile's per-domain lengths, so the block's frames / agents apply to every domain
+WHOLE = frozenset({"simulate.domains"})
+
+
 def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "") -> dict:
     out = dict(base)
     for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
+        if f"{prefix}{key}" in WHOLE:
+            out[key] = copy.deepcopy(value)
+        elif isinstance(value, dict) and isinstance(out.get(key), dict):
             out[key] = _deep_merge(out[key], value, where=where, prefix=f"{prefix}{key}.")
         else:
             out[key] = value

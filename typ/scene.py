@@ -17,6 +17,13 @@ SEMANTIC_CLASSES: tuple[str, ...] = ("ground", "road", "building", "vegetation",
 SEMANTIC_CODE: dict[str, int] = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
 #: Code for points whose class is not known (real data without point labels).
 SEMANTIC_UNKNOWN = 255
+#: Box labels of vehicles: the simulator's, KITTI's, Waymo's, nuScenes'.
+VEHICLE_LABELS = frozenset({"car", "van", "truck", "vehicle", "bus", "trailer", "construction_vehicle"})
+
+
+def vehicle_mask(labels) -> np.ndarray:
+    """(K,) bool: which box labels are vehicles (:data:`VEHICLE_LABELS`, case-insensitive)."""
+    return np.array([str(label).lower() in VEHICLE_LABELS for label in labels], dtype=bool)
 
 
 @dataclass

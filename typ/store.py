@@ -237,12 +237,13 @@ def stored_grid(path: str | os.PathLike) -> Grid:
     return _metadata(path, _read_schema(path))[0]
 
 
-def store_grid(root: str | os.PathLike, field: str) -> Grid:
-    """The grid of the voxel store at ``root`` (every scene shares it); ``field`` names the
-    params key that points there, for the error when the store is empty."""
-    stored = list_scenes(root)
+def store_grid(root: str | os.PathLike, field: str, *, dataset: str) -> Grid:
+    """The grid ``dataset``'s scenes were voxelized on (every scene of a dataset shares it: the
+    configured grid in that dataset's sensor frame); ``field`` names the params key that points
+    at the store, for the error when it holds no scene of ``dataset``."""
+    stored = list_scenes(root, dataset=dataset)
     if not stored:
-        raise TypError(root, field, "a voxel store of voxelized scenes (run the voxelize stage first)", "empty")
+        raise TypError(root, field, f"voxelized scenes of dataset {dataset!r} (run the voxelize stage first)", "none")
     return stored_grid(stored[0].path)
 
 

@@ -122,6 +122,17 @@ class Grid:
             raise TypError(where, "grid", f"a mapping with exactly the keys {sorted(keys)}", got)
         return cls(tuple(d["x_range"]), tuple(d["y_range"]), tuple(d["z_range"]), tuple(d["shape"]))
 
+    def for_sensor(self, mount_height: float) -> Grid:
+        """This grid, whose z range is height above the ground under the sensor, expressed in
+        the frame of a sensor ``mount_height`` m above that ground (TYP §4.1: the z range is
+        dataset-dependent). Every domain's ground then falls in the same height channel, and
+        ``voxel_centers`` on the returned grid gives points in that sensor's own frame."""
+        if isinstance(mount_height, bool) or not isinstance(mount_height, numbers.Real) \
+                or not math.isfinite(mount_height) or mount_height < 0:
+            raise TypError("grid", "mount_height", "a finite height >= 0 in metres", mount_height)
+        lo, hi = self.z_range
+        return Grid(self.x_range, self.y_range, (lo - float(mount_height), hi - float(mount_height)), self.shape)
+
     def digest(self) -> str:
         """Stable 16-hex-digit id of the grid (sha256 of :meth:`to_dict`), for cache keys."""
         return hash_obj(self.to_dict())[:16]

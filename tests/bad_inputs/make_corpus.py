@@ -1001,7 +1001,7 @@ def _(d):
 @case("params", "unknown_profile", "unknown")
 def _(d):
     probe = load_params(d, {"profile": "huge"})
-    probe.says += ("profile", "one of ['tiny', 'paper']", "'huge'")
+    probe.says += ("profile", "one of ['tiny', 'small', 'paper']", "'huge'")
     return probe
 
 
@@ -1164,7 +1164,7 @@ def _(d):
 @case("cli", "params_unknown_profile", "unknown")
 def _(d):
     root = project(d, {"profile": "huge"})
-    return _cli(root, "run", "voxelize", says=("params.yaml: profile", "one of ['tiny', 'paper']"))
+    return _cli(root, "run", "voxelize", says=("params.yaml: profile", "one of ['tiny', 'small', 'paper']"))
 
 
 @case("cli", "params_wrong_type", "wrong dtype")

@@ -1,4 +1,20 @@
-"""Evaluation metrics: generation quality (BEV JSD/MMD) and agreement with ground truth."""
-from typ.metrics.bev import PRESETS, BevPreset, bev_histogram, jsd_bev, mmd_bev
-from typ.metrics.truth import chamfer_distance, occupancy_iou, voxel_iou
-from typ.metrics.detection import PRCurve, ap_by_range, pr_curves
+"""Evaluation metrics: generation quality (BEV JSD/MMD), agreement with ground truth, detection AP,
+the evaluation-only generation figures and bootstrap intervals.
+
+Names are re-exported lazily (PEP 562), so importing one submodule does not import the others:
+a stage that only needs ``occupancy_iou`` does not depend on, or load, the detection metrics.
+"""
+from importlib import import_module
+
+_EXPORTS = {
+    "PRESETS": "bev", "BevPreset": "bev", "bev_histogram": "bev", "jsd_bev": "bev", "mmd_bev": "bev",
+    "chamfer_distance": "truth", "occupancy_iou": "truth", "voxel_iou": "truth",
+    "PRCurve": "detection", "ap_by_range": "detection", "pr_curves": "detection",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(f"typ.metrics.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'typ.metrics' has no attribute {name!r}")

@@ -88,3 +88,4 @@ def chamfer_distance(a, b) -> float:
     a_to_b, _ = cKDTree(xb).query(xa, k=1)
     b_to_a, _ = cKDTree(xa).query(xb, k=1)
     return float((a_to_b.mean() + b_to_a.mean()) / 2.0)
+

@@ -1,0 +1,182 @@
+"""Generation accuracy on held-out simulated target scenes: every method, every seed, with intervals.
+
+Held-out (ego, reference) pairs come from the target domain's test split: only the ego's
+cloud and the reference's labelled boxes go in; the reference's own cloud is the hidden
+truth. Each method produces the reference view as an occupancy grid and a point cloud:
+
+- ``naive copy``: the ego's cloud moved into the reference frame (x_e');
+- ``re-simulation``: the ego's cloud as surfels, ray-cast from the reference pose with the
+  reference sensor's beams (:mod:`typ.resim`);
+- ``stage 1 only``: P(x_r | y_r), no ego cloud;
+- ``stage 2 without adaptation`` / ``stage 2 (adapted source encoder)`` / ``+ self-training`` /
+  ``TYP``: TYP Table 4's rows (:mod:`tasks.selftrain`);
+- ``TYP + re-simulated conditioning``: the adapter sees the re-simulated view beside x_e';
+- ``one-stage``: TYP Table 5's baseline, UNet and adapter trained together on source tuples;
+- ``hybrid``: re-simulation where the ego saw, TYP elsewhere.
+
+Learned methods are sampled once per training seed (replica); every figure is pooled over
+pairs and given with a bootstrap interval over scenes and seeds (:mod:`tasks.genscore`).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tasks import genscore, stage1, stage2
+from tasks.pairs import iter_pairs
+from tasks.pipeline import TYPPipeline
+from tasks.selftrain import base_pipeline, resim_variant, variant_of
+from typ.metrics.intervals import Interval
+from typ.resim import coverage_mask, hybrid
+from typ.voxel import Grid, voxelize
+
+#: method key -> row label, in the report's order
+METHODS = {
+    "naive_copy": "naive copy",
+    "resim": "re-simulation",
+    "stage1_only": "stage 1 only (boxes, no ego)",
+    "no_adaptation": "stage 2 without adaptation",
+    "disc": "stage 2 (adapted source encoder)",
+    "disc_st": "+ self-training",
+    "disc_st_dummy": "TYP: + self-training + dummy ego",
+    "typ_resim": "TYP + re-simulated conditioning",
+    "one_stage": "one-stage (TYP Table 5 baseline)",
+    "hybrid": "hybrid: re-simulation where the ego saw, TYP elsewhere",
+}
+
+
+@dataclass
+class EvalSet:
+    """The held-out pairs, as every method needs them."""
+
+    grid: Grid
+    scenes: list[str]
+    x_r: np.ndarray          # (P, C, H, W) bool truth
+    y_r: np.ndarray          # (P, 1, H, W) float32
+    x_e: np.ndarray          # (P, C, H, W) float32
+    resim: np.ndarray        # (P, C, H, W) float32
+    seen: np.ndarray         # (P, H, W) bool
+    boxes: list[np.ndarray]  # (K, 7) reference vehicles per pair
+    ego_points: list[np.ndarray]
+    resim_points: list[np.ndarray]
+    truth_stats: list[dict] = field(default_factory=list)
+    resim_seconds: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+
+def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None = None) -> EvalSet:
+    """Pairs (scenario ego -> every other agent) of every frame under ``split_root``."""
+    from tasks.stage2 import OWN_CAR_MARGIN
+    from tasks.generate import EGO_CAR_LWH
+    from typ.resim import resimulate
+
+    rows: dict[str, list] = {k: [] for k in ("scenes", "x_r", "y_r", "x_e", "resim", "seen", "boxes", "ego_points",
+                                              "resim_points")}
+    l, w, h = EGO_CAR_LWH
+    own_car = np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
+    t0 = time.perf_counter()
+    for i, p in enumerate(iter_pairs(split_root, grid, ego_only=True)):
+        if max_pairs is not None and i >= max_pairs:
+            break
+        points = resimulate(p.ego_points[:, :3], spec, exclude_boxes=own_car)
+        rows["scenes"].append(p.scenario)
+        rows["x_r"].append(p.x_r)
+        rows["y_r"].append(p.y_r.astype(np.float32))
+        rows["x_e"].append(p.x_e.astype(np.float32))
+        rows["resim"].append(voxelize(points, grid).transpose(2, 0, 1).astype(np.float32))
+        rows["seen"].append(coverage_mask(p.ego_points, grid))
+        rows["boxes"].append(p.ref_boxes)
+        rows["ego_points"].append(p.ego_points)
+        rows["resim_points"].append(points)
+    seconds = (time.perf_counter() - t0) / max(len(rows["scenes"]), 1)
+    stacked = {k: np.stack(rows[k]) for k in ("x_r", "y_r", "x_e", "resim", "seen")}
+    out = EvalSet(grid, rows["scenes"], **stacked, boxes=rows["boxes"], ego_points=rows["ego_points"],
+                  resim_points=rows["resim_points"], resim_seconds=seconds)
+    out.truth_stats = [genscore.true_view_stats(x, grid) for x in out.x_r]
+    return out
+
+
+def score_method(data: EvalSet, occupancy: np.ndarray, points: list[np.ndarray]) -> list[genscore.PairScore]:
+    return [genscore.score_pair(occupancy[i].astype(bool), points[i], data.x_r[i], data.seen[i], data.boxes[i],
+                                data.grid, data.truth_stats[i]) for i in range(len(data))]
+
+
+def sample_method(pipe: TYPPipeline, data: EvalSet, seed: int) -> tuple[np.ndarray, list[np.ndarray], float]:
+    """(occupancy, points, seconds per view) of ``pipe`` on every pair."""
+    t0 = time.perf_counter()
+    occ = pipe.occupancy(data.x_e, data.y_r, seed=seed, resim=data.resim if pipe.conditions == 2 else None)
+    points = [pipe.points(o, data.grid, seed + i) for i, o in enumerate(occ)]
+    return occ, points, (time.perf_counter() - t0) / max(len(data), 1)
+
+
+def pipelines(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> dict[str, TYPPipeline]:
+    """Every learned method of replica ``seed`` that the trained artifacts provide."""
+    base = base_pipeline(cfg, root, seed, x_vq, y_encoder, stats)
+    out = {"stage1_only": base}
+    folder = stage1.replica_dir(root / cfg.selftrain.out, seed)
+    for name in ("no_adaptation", "disc", "disc_st", "disc_st_dummy", "typ_resim"):
+        if (folder / name / "config.json").is_file():
+            out[name] = base.with_adapter(stage2.load_adapter(folder / name, "selftrain"))
+    one = stage1.replica_dir(root / cfg.stage2.out, seed) / "one_stage"
+    if (one / "unet" / "config.json").is_file():
+        from tasks.artifacts import load_module
+        from models.ldm import LatentDiffusion
+
+        unet, meta = load_module(one / "unet", LatentDiffusion.from_config, "stage2")
+        out["one_stage"] = TYPPipeline(x_vq, y_encoder, unet, stage2.load_adapter(one / "adapter"), base.grid,
+                                       meta["schedule"], int(meta["train_timesteps"]), base.sampler,
+                                       base.num_inference_steps, base.thresholds, stats)
+    return out
+
+
+def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int = 1000) -> dict:
+    """Scores and intervals of every method; the TYP variant the switches name is ``typ``."""
+    seeds = stage1.replica_seeds(cfg.stage1.seed, cfg.stage1.replicas)
+    scores: dict[str, list[list[genscore.PairScore]]] = {}
+    seconds: dict[str, float] = {"re-simulation": data.resim_seconds}
+    samples: dict[str, np.ndarray] = {}
+    scores["naive_copy"] = [score_method(data, data.x_e > 0.5, data.ego_points)]
+    scores["resim"] = [score_method(data, data.resim > 0.5, data.resim_points)]
+    typ_key = variant_of(cfg.selftrain).name
+    spread = []
+    for seed in seeds:
+        for name, pipe in pipelines(cfg, root, seed, x_vq, y_encoder, stats).items():
+            occ, points, sec = sample_method(pipe, data, seed)
+            scores.setdefault(name, []).append(score_method(data, occ, points))
+            seconds[name] = sec
+            if seed == seeds[0]:
+                samples[name] = occ
+            if name == typ_key:
+                hyb = hybrid(data.resim > 0.5, occ, data.seen)
+                hyb_points = [np.concatenate([data.resim_points[i][_in_seen(data.resim_points[i], data.seen[i], data.grid), :3],
+                                              points[i][~_in_seen(points[i], data.seen[i], data.grid), :3]])
+                              for i in range(len(data))]
+                scores.setdefault("hybrid", []).append(score_method(data, hyb, hyb_points))
+                # sample-to-sample spread: the same pairs with other noise
+                other, _, _ = sample_method(pipe, data, seed + 7919)
+                spread.append(genscore.pairwise_iou(occ, other))
+    truth_h = [s["histogram"] for s in data.truth_stats]
+    truth_c = [s["centres"] for s in data.truth_stats]
+    table = {name: genscore.summarize(rows, data.scenes, truth_h, truth_c, n_boot=n_boot) for name, rows in scores.items()}
+    return {"table": table, "seconds": seconds, "samples": samples, "typ": typ_key, "seeds": seeds,
+            "resim_key": resim_variant(cfg.selftrain).name, "spread_iou": float(np.mean(spread)) if spread else None,
+            "pairs": len(data), "scenes": len(set(data.scenes))}
+
+
+def _in_seen(points: np.ndarray, seen: np.ndarray, grid: Grid) -> np.ndarray:
+    ij = np.floor((points[:, :2] - grid.lower[:2]) / grid.voxel_size[:2]).astype(np.int64)
+    ok = (ij >= 0).all(axis=1) & (ij[:, 0] < seen.shape[0]) & (ij[:, 1] < seen.shape[1])
+    out = np.zeros(len(points), bool)
+    out[ok] = seen[ij[ok, 0], ij[ok, 1]]
+    return out
+
+
+def report_rows(result: dict) -> dict[str, dict[str, Interval]]:
+    """The accuracy table's rows in :data:`METHODS` order (methods not run are left out)."""
+    table = result["table"]
+    return {METHODS[k]: table[k] for k in METHODS if k in table}

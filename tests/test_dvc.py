@@ -1,0 +1,48 @@
+"""dvc.yaml declares what each stage reads: every module its flow imports, and the profile keys
+of every params block it reads, so that a change re-runs the stages it affects and no other."""
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from dvc_deps import ROOT, closure, code_deps
+from dvc_params import profile_params
+
+DVC = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+
+
+@pytest.mark.parametrize("stage", sorted(DVC))
+def test_code_deps_are_the_flows_import_closure(stage):
+    deps = set(DVC[stage]["deps"])
+    missing = [d for d in code_deps(stage) if d not in deps]
+    assert not missing, f"dvc.yaml stage {stage} misses code deps {missing}"
+    code = {d for d in deps if d.endswith(".py") or d in ("typ/sim", "typ/formats")}
+    extra = sorted(code - set(code_deps(stage)))
+    assert not extra, f"dvc.yaml stage {stage} depends on code its flow never imports: {extra}"
+
+
+@pytest.mark.parametrize("stage", sorted(DVC))
+def test_params_cover_every_profile_of_each_block(stage):
+    params = DVC[stage]["params"]
+    blocks = [p for p in params if isinstance(p, str) and p != "profile"]
+    assert "profile" in params and stage in blocks or stage not in {"simulate", "voxelize"}
+    profile_keys = next(p["typ/profiles.yaml"] for p in params if isinstance(p, dict))
+    assert sorted(profile_keys) == sorted(profile_params(blocks)), stage
+
+
+def test_metric_code_reaches_evaluate_but_not_training():
+    """Editing a generation metric re-runs evaluate alone (the issue's `dvc status` check)."""
+    metric = "typ/metrics/generation.py"
+    users = sorted(s for s in DVC if metric in DVC[s]["deps"])
+    assert users == ["evaluate"], users
+    assert (ROOT / metric) in closure("flows.evaluate")
+
+
+def test_training_stages_read_no_held_out_split():
+    """Adding a held-out scene retrains nothing: training stages depend on training data only."""
+    for stage in ("vqvae", "stage1", "adapt", "stage2", "selftrain"):
+        data = [d for d in DVC[stage]["deps"] if d.startswith("data/")]
+        assert data, stage
+        for d in data:  # a split folder, never a whole store
+            split = d.rsplit("/", 1)[-1].removeprefix("split=")
+            assert split in ("train", "val"), (stage, d)

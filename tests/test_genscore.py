@@ -1,0 +1,86 @@
+"""Generation scores on hand-made grids: pooled IoU by mask, the above-ground mask, object hits,
+JSD against itself, and intervals that pool scenes."""
+import numpy as np
+import pytest
+
+from tasks import genscore
+from typ.metrics.generation import above_ground, local_ground, object_hits
+from typ.voxel import Grid
+
+GRID = Grid((-25.6, 25.6), (-25.6, 25.6), (-0.75, 3.25), (64, 64, 8))   # 0.8 m cells, 0.5 m bins
+
+
+def _flat_view():
+    """(C, H, W): ground (channel 1) everywhere but the sensor's shadow, a wall 2 m high at x = 10 m."""
+    v = np.zeros((8, 64, 64), bool)
+    v[1] = True
+    v[1, 30:34, 30:34] = False
+    v[1:5, 44, 10:50] = True
+    return v
+
+
+def test_local_ground_is_the_lowest_occupied_height_around_a_cell():
+    v = _flat_view().transpose(1, 2, 0)
+    ground = local_ground(v, GRID)
+    assert np.allclose(ground, GRID.centers(2)[1])      # the ground bin everywhere, shadow and wall included
+    above = above_ground(v, GRID)
+    assert above[..., 2:].all() and not above[..., :2].any()   # 0.5 m and up is > 0.3 m over the ground
+
+
+def test_a_perfect_view_scores_one_and_a_copy_shifted_off_the_walls_scores_less():
+    truth = _flat_view()
+    seen = np.zeros((64, 64), bool)
+    seen[:32] = True
+    stats = genscore.true_view_stats(truth, GRID)
+    boxes = np.zeros((0, 7))
+    perfect = genscore.score_pair(truth, np.zeros((0, 3)), truth, seen, boxes, GRID, stats)
+    assert all(tp > 0 and fp == 0 and fn == 0 for tp, fp, fn in perfect.counts.values() if tp + fn)
+    assert perfect.chamfer == 0.0
+    ground_only = truth.copy()
+    ground_only[2:] = False
+    s = genscore.score_pair(ground_only, np.zeros((0, 3)), truth, seen, boxes, GRID, stats)
+    tp, fp, fn = s.counts["above_ground"]
+    assert tp == 0 and fn == truth[2:].sum()           # the wall is all that is above the ground
+    tp, fp, fn = s.counts["all"]
+    assert tp == truth[:2].sum() and fp == 0
+
+
+def test_object_hits_count_boxes_within_range_holding_enough_points():
+    rng = np.random.default_rng(0)
+    boxes = np.array([[10.0, 0, 0.75, 4.5, 1.8, 1.5, 0.0],     # 12 points inside: hit
+                      [0.0, 20, 0.75, 4.5, 1.8, 1.5, 0.3],     # 9 points: miss
+                      [60.0, 0, 0.75, 4.5, 1.8, 1.5, 0.0]])    # beyond 50 m: not counted
+    inside = lambda b, n: b[:3] + (rng.random((n, 3)) - 0.5) * np.array([4.0, 1.5, 1.2]) @ np.eye(3)
+    pts = np.concatenate([inside(boxes[0], 12), boxes[1, :3] + np.zeros((9, 3)), inside(boxes[2], 30)])
+    assert object_hits(pts, boxes) == (1, 2)
+    assert object_hits(np.zeros((0, 3)), boxes) == (0, 2)
+
+
+def test_summary_pools_scenes_and_seeds_with_intervals():
+    truth = _flat_view()
+    seen = np.ones((64, 64), bool)
+    stats = genscore.true_view_stats(truth, GRID)
+    half = truth.copy()
+    half[:, :32] = False
+    perfect = genscore.score_pair(truth, np.zeros((0, 3)), truth, seen, np.zeros((0, 7)), GRID, stats)
+    worse = genscore.score_pair(half, np.zeros((0, 3)), truth, seen, np.zeros((0, 7)), GRID, stats)
+    # scene a: perfect, scene b: half, for both seeds
+    table = genscore.summarize([[perfect, worse], [perfect, worse]], ["a", "b"], [stats["histogram"]] * 2,
+                               [stats["centres"]] * 2, n_boot=200)
+    tp = perfect.counts["all"][0] + worse.counts["all"][0]
+    union = sum(perfect.counts["all"]) + sum(worse.counts["all"])
+    assert table["iou"].value == pytest.approx(tp / union)
+    assert table["iou"].low < table["iou"].value < table["iou"].high
+    assert table["jsd_r2dm"].value > 0
+    same = genscore.summarize([[perfect, perfect]], ["a", "b"], [stats["histogram"]] * 2, [stats["centres"]] * 2,
+                              n_boot=50)
+    assert same["jsd_r2dm"].value == pytest.approx(0.0, abs=1e-12) and same["iou"].value == 1.0
+
+
+def test_pairwise_iou_of_samples():
+    a = np.zeros((1, 2, 4, 4), bool)
+    a[0, 0, :2] = True
+    b = a.copy()
+    assert genscore.pairwise_iou(a, b) == 1.0
+    b[0, 0, 1] = False
+    assert genscore.pairwise_iou(a, b) == pytest.approx(0.5)

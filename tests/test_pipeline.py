@@ -1,0 +1,137 @@
+"""The generator as one object: what conditions it, reproducibility, the zero-initialised adapter,
+save/load round trips with named errors, and turning occupancy back into a realistic cloud."""
+import numpy as np
+import pytest
+import torch
+
+from models.adapter import ZeroAdapter
+from models.ldm import LatentDiffusion
+from models.vqvae import BEVVQVAE, PooledBoxMap
+from tasks.pipeline import PointStats, TYPPipeline, occupancy_to_points, point_statistics
+from typ.errors import TypError
+from typ.voxel import Grid, voxelize
+
+GRID = Grid((-12.8, 12.8), (-12.8, 12.8), (-0.75, 3.25), (32, 32, 8))
+
+
+def _pipeline(adapter=True, conditions=1) -> TYPPipeline:
+    torch.manual_seed(0)
+    x_vq = BEVVQVAE(in_channels=8, latent_channels=4, block_out_channels=(8, 16), num_codes=32, norm_num_groups=4)
+    x_vq(torch.rand(2, 8, 32, 32).round())  # initialise the EMA codebook
+    unet = LatentDiffusion(latent_channels=4, cond_channels=1, sample_size=16, block_out_channels=(16, 16),
+                           norm_num_groups=8, cross_attention_dim=8, self_attention=False, coordinates=True,
+                           prediction="sample")
+    ad = ZeroAdapter(latent_channels=4, channels=(16, 16), conditions=conditions) if adapter else None
+    stats = PointStats((0.0, 10.0, 1e9), ((0.5, 0.5), (1.0,)), (tuple(np.linspace(0, 0.5, 21)), (0.2,) * 21))
+    return TYPPipeline(x_vq.eval(), PooledBoxMap(downsample=2), unet.eval(), None if ad is None else ad.eval(), GRID,
+                       "linear", 1000, "dpmsolver++", 3, {"low": 0.4, "high": 0.6, "noise_std": 1.0}, stats)
+
+
+def _inputs(n=2, seed=0):
+    rng = np.random.default_rng(seed)
+    x_e = (rng.random((n, 8, 32, 32)) < 0.05).astype(np.float32)
+    y_r = np.zeros((n, 1, 32, 32), np.float32)
+    y_r[:, :, 10:14, 6:9] = 1
+    return x_e, y_r
+
+
+def test_same_seed_same_bytes_other_seed_other_sample():
+    pipe = _pipeline()
+    x_e, y_r = _inputs()
+    a = pipe.logits(x_e, y_r, seed=3)
+    assert torch.equal(a, pipe.logits(x_e, y_r, seed=3))
+    assert not torch.equal(a, pipe.logits(x_e, y_r, seed=4))
+
+
+def test_a_fresh_zero_initialised_adapter_leaves_stage_one_unchanged():
+    pipe = _pipeline()
+    x_e, y_r = _inputs()
+    assert all(float(f.abs().max()) == 0 for f in pipe.adapter(torch.randn(2, 4, 16, 16)))
+    assert torch.equal(pipe.logits(x_e, y_r, seed=1), pipe.with_adapter(None).logits(x_e, y_r, seed=1))
+
+
+def test_condition_is_the_normalised_box_latent_and_the_adapter_sees_x_e():
+    pipe = _pipeline()
+    x_e, y_r = _inputs()
+    seen = {"cond": [], "adapter": []}
+    unet_forward, adapter_forward = pipe.unet.forward, pipe.adapter.forward
+
+    def unet_spy(z_t, t, cond, adapter_features=None):
+        seen["cond"].append(cond.clone())
+        return unet_forward(z_t, t, cond, adapter_features)
+
+    def adapter_spy(condition):
+        seen["adapter"].append(condition.clone())
+        return adapter_forward(condition)
+
+    pipe.unet.forward, pipe.adapter.forward = unet_spy, adapter_spy
+    pipe.logits(x_e, y_r, seed=0)
+    expected_cond = pipe.unet.normalize_cond(pipe.box_encoder.encode_pre_quant(torch.from_numpy(y_r)))
+    assert len(seen["cond"]) == 3 and all(torch.equal(c, expected_cond) for c in seen["cond"])  # every step
+    with torch.no_grad():
+        expected_ego = pipe.unet.normalize(pipe.x_vqvae.encode_pre_quant(torch.from_numpy(x_e)))
+    assert len(seen["adapter"]) == 1 and torch.allclose(seen["adapter"][0], expected_ego)  # once per sample
+
+
+def test_a_resimulation_conditioned_adapter_needs_the_resimulated_view():
+    pipe = _pipeline(conditions=2)
+    x_e, y_r = _inputs()
+    with pytest.raises(TypError, match="resim"):
+        pipe.logits(x_e, y_r, seed=0)
+    assert pipe.logits(x_e, y_r, seed=0, resim=x_e).shape == (2, 8, 32, 32)
+
+
+def test_save_and_load_give_the_same_samples(tmp_path):
+    pipe = _pipeline()
+    with torch.no_grad():
+        for p in pipe.adapter.parameters():
+            p.add_(0.01)
+    pipe.save_pretrained(tmp_path / "gen")
+    assert sorted(p.name for p in (tmp_path / "gen").iterdir()) == [
+        "adapter", "box_encoder", "pipeline.json", "unet", "x_vqvae"]
+    assert not list((tmp_path / "gen").rglob("*.pt"))  # weights in safetensors, configs in JSON
+    back = TYPPipeline.from_pretrained(tmp_path / "gen")
+    x_e, y_r = _inputs()
+    assert torch.equal(pipe.logits(x_e, y_r, seed=5), back.logits(x_e, y_r, seed=5))
+    assert back.point_stats == pipe.point_stats and back.grid == GRID
+
+
+def test_damaged_artifacts_are_named(tmp_path):
+    pipe = _pipeline()
+    pipe.save_pretrained(tmp_path / "gen")
+    weights = tmp_path / "gen" / "unet" / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: len(weights.read_bytes()) // 2])
+    with pytest.raises(TypError, match=r"unet/model.safetensors.*safetensors file written by the selftrain stage"):
+        TYPPipeline.from_pretrained(tmp_path / "gen")
+    with pytest.raises(TypError, match="pipeline.json.*run the selftrain stage"):
+        TYPPipeline.from_pretrained(tmp_path / "missing")
+
+
+def test_points_fill_their_voxels_with_the_domain_density_and_intensity():
+    occ = np.zeros((8, 32, 32), bool)
+    occ[1, 16, 16] = True      # ~0.4 m from the sensor: band 0 (1 or 2 points)
+    occ[3, 31, 0] = True       # ~17 m: band 1 (exactly 1 point, intensity 0.2)
+    pts = occupancy_to_points(occ, GRID, _pipeline().point_stats, np.random.default_rng(0))
+    assert pts.dtype == np.float32 and pts.shape[1] == 4
+    back = voxelize(pts, GRID).transpose(2, 0, 1)
+    assert np.array_equal(back, occ)                       # every point inside its own voxel
+    near = np.hypot(pts[:, 0], pts[:, 1]) < 5
+    assert 1 <= near.sum() <= 2 and (~near).sum() == 1
+    assert np.allclose(pts[~near, 3], 0.2) and (0 <= pts[near, 3]).all() and (pts[near, 3] <= 0.5).all()
+    centres = GRID.lower + (np.array([16, 16, 1]) + 0.5) * GRID.voxel_size
+    assert not np.allclose(pts[near, :3], centres)          # spread inside the voxel, not on its centre
+
+
+def test_point_statistics_of_a_cloud():
+    rng = np.random.default_rng(0)
+    near = np.concatenate([np.full((3, 3), [2.1, 2.1, 0.1]) + rng.random((3, 3)) * 0.01, np.full((3, 1), 0.7)], axis=1)
+    far = np.array([[12.0, 0.1, 0.1, 0.3]])
+    outside = np.array([[15.0, 0.1, 0.1, 0.9]])       # beyond the ±12.8 m grid: not counted
+    stats = point_statistics([np.concatenate([near, far, outside]).astype(np.float32)], GRID)
+    assert stats.points_per_voxel[0][:3] == (0.0, 0.0, 1.0)   # band 0-10 m: one voxel holding 3 points
+    assert stats.points_per_voxel[1][:2] == (1.0, 0.0)        # band 10-20 m: one voxel holding 1 point
+    assert stats.intensity[0] == pytest.approx((0.7,) * 21) and stats.intensity[1] == pytest.approx((0.3,) * 21)
+    # bands no point reaches take the pooled statistics: 2 voxels (1 and 3 points), intensities 0.7 x3, 0.3
+    assert stats.points_per_voxel[2][:3] == (0.5, 0.0, 0.5)
+    assert stats.intensity[2][0] == pytest.approx(0.3) and stats.intensity[2][-1] == pytest.approx(0.7)
+    assert point_statistics([np.zeros((0, 4), np.float32)], GRID) == PointStats.single()
