@@ -37,7 +37,7 @@ from typ.voxel import voxel_centers
 
 def source_from_target(target: BEVVQVAE) -> BEVVQVAE:
     """E_src, G_src initialised from E_tgt, G_tgt; the codebook is Q_tgt, frozen."""
-    source = copy.deepcopy(target)
+    source = copy.deepcopy(target).requires_grad_(True)  # whatever the target's flags were
     source.freeze_codebook()
     for p in target.parameters():
         p.requires_grad_(False)
