@@ -49,3 +49,21 @@ def test_bad_arguments_are_named():
         bootstrap(lambda c, s: 0.0, 0)
     with pytest.raises(TypError, match="den"):
         pooled_ratio(np.ones(3), np.ones(4))
+
+
+def test_basic_interval_reflects_a_resampling_bias_about_the_figure():
+    """A statistic every resample inflates (distinct scenes drawn fall below K) has a percentile
+    interval above the figure; the basic interval reflects it back around the figure."""
+    from typ.metrics.intervals import bootstrap
+
+    K = 10
+
+    def missing_share(c, s):  # 0 on the full set, > 0 on any resample with repeats
+        return 1.0 - len(np.unique(c)) / K
+
+    p = bootstrap(missing_share, K, n_boot=400, seed=1)
+    b = bootstrap(missing_share, K, n_boot=400, seed=1, method="basic")
+    assert p.value == b.value == 0.0 and p.low > 0.0          # the percentile interval misses the figure
+    assert (b.low, b.high) == pytest.approx((-p.high, -p.low))  # reflected about 0
+    with pytest.raises(TypError, match="method"):
+        bootstrap(missing_share, K, method="bca")
