@@ -68,8 +68,9 @@ def plan_jobs(cfg: SimulateConfig) -> list[ScenarioJob]:
                 tag = int.from_bytes(hashlib.sha256(f"{domain}/{split}".encode()).digest()[:4], "little")
                 ss = np.random.SeedSequence([cfg.seed, tag, index])
                 seed = int(ss.generate_state(1, np.uint32)[0])
-                n_agents = int(np.random.default_rng(ss).integers(cfg.agents_min, cfg.agents_max + 1))
-                jobs.append(ScenarioJob(domain, split, index, seed, n_agents, cfg.frames,
+                frames, agents_min, agents_max = cfg.for_domain(domain)
+                n_agents = int(np.random.default_rng(ss).integers(agents_min, agents_max + 1))
+                jobs.append(ScenarioJob(domain, split, index, seed, n_agents, frames,
                                         cfg.azimuth_step_deg, cfg.comm_range, cfg.dt))
     return jobs
 

@@ -20,7 +20,7 @@ import yaml
 from typ.errors import TypError
 
 PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
-PROFILES = ("tiny", "paper")
+PROFILES = ("tiny", "small", "paper")
 DOMAINS = ("source", "target", "real_cav")
 
 
@@ -46,6 +46,15 @@ class GridConfig:
 
 
 @dataclass(frozen=True)
+class DomainSimulation:
+    """Per-domain overrides of the simulation's ``frames`` and agent counts (unset: the defaults)."""
+
+    frames: int | None = None
+    agents_min: int | None = None
+    agents_max: int | None = None
+
+
+@dataclass(frozen=True)
 class SimulateConfig:
     """Embedded simulator: which scenarios of which sensor domain go to which split."""
 
@@ -60,12 +69,26 @@ class SimulateConfig:
     scenarios: dict[str, dict[str, int]]
     workers: int
     out: str
+    #: domain -> frames / agents_min / agents_max for that domain's scenarios
+    domains: dict[str, DomainSimulation] = field(default_factory=dict)
+
+    def for_domain(self, domain: str) -> tuple[int, int, int]:
+        """(frames, agents_min, agents_max) of ``domain``'s scenarios."""
+        d = self.domains.get(domain, DomainSimulation())
+        return (d.frames if d.frames is not None else self.frames,
+                d.agents_min if d.agents_min is not None else self.agents_min,
+                d.agents_max if d.agents_max is not None else self.agents_max)
 
     def check(self, where: str, name: str) -> None:
-        _positive(where, f"{name}.frames", self.frames)
-        if not 1 <= self.agents_min <= self.agents_max <= 8:
-            raise TypError(where, f"{name}.agents_min/agents_max", "1 <= agents_min <= agents_max <= 8",
-                           [self.agents_min, self.agents_max])
+        checks = [(name, self.frames, self.agents_min, self.agents_max)]
+        for domain in self.domains:
+            if domain not in DOMAINS:
+                raise TypError(where, f"{name}.domains.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
+            checks.append((f"{name}.domains.{domain}", *self.for_domain(domain)))
+        for label, frames, lo, hi in checks:
+            _positive(where, f"{label}.frames", frames)
+            if not 1 <= lo <= hi <= 8:
+                raise TypError(where, f"{label}.agents_min/agents_max", "1 <= agents_min <= agents_max <= 8", [lo, hi])
         _positive(where, f"{name}.azimuth_step_deg", self.azimuth_step_deg)
         _positive(where, f"{name}.comm_range", self.comm_range)
         _positive(where, f"{name}.dt", self.dt)
@@ -632,10 +655,18 @@ def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict |
 
 
 def profile_defaults(profile: str) -> dict:
+    """The defaults of ``profile`` in typ/profiles.yaml; a profile with ``extends: <other>``
+    is that profile's defaults with its own keys merged over them."""
     data = yaml.safe_load(PROFILES_FILE.read_text())
     if profile not in data:
         raise TypError(PROFILES_FILE, "profile", f"one of {sorted(data)}", profile)
-    return data[profile]
+    own = dict(data[profile])
+    parent = own.pop("extends", None)
+    if parent is None:
+        return own
+    if parent == profile or parent not in data:
+        raise TypError(PROFILES_FILE, f"{profile}.extends", f"another profile of {sorted(data)}", parent)
+    return _deep_merge(profile_defaults(parent), own)
 
 
 def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "") -> dict:
