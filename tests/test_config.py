@@ -34,7 +34,7 @@ def test_override_is_key_by_key_and_keeps_other_defaults():
 
 
 @pytest.mark.parametrize("raw, field, expected", [
-    ({"profile": "huge"}, "profile", "one of ['tiny', 'paper']"),
+    ({"profile": "huge"}, "profile", "one of ['tiny', 'small', 'paper']"),
     ({"simulate": {"frames": "3"}}, "simulate.frames", "an integer"),
     ({"simulate": {"frame": 3}}, "simulate.frame", "known keys"),
     ({"simulate": {"frames": 0}}, "simulate.frames", "> 0"),
@@ -79,10 +79,20 @@ def test_flatten_gives_dotted_names():
 
 
 def test_every_profile_loads_and_has_the_same_keys():
-    a, b = yaml.safe_load(open("typ/profiles.yaml")).values()
+    profiles = yaml.safe_load(open("typ/profiles.yaml"))
     def keys(d):  # scenario counts per split may differ between profiles
-        return {k for k in flatten(d) if not k.startswith("simulate.scenarios")}
+        return {k for k in flatten(d) if not k.startswith("simulate.scenarios") and not k.startswith("simulate.domains")}
 
-    assert keys(a) == keys(b)
-    for profile in ("tiny", "paper"):
+    assert keys(profiles["tiny"]) == keys(profiles["paper"])
+    assert keys(profile_defaults("small")) == keys(profiles["tiny"])      # small extends tiny
+    for profile in ("tiny", "small", "paper"):
         config_from_dict({"profile": profile})
+
+
+def test_small_profile_is_tiny_with_a_bigger_fusion_benchmark():
+    tiny, small = config_from_dict({"profile": "tiny"}), config_from_dict({"profile": "small"})
+    assert small.fusion.detector == tiny.fusion.detector and small.stage1 == tiny.stage1
+    assert small.fusion.seeds == 3 and small.fusion.steps > tiny.fusion.steps
+    assert small.simulate.for_domain("real_cav")[0] > tiny.simulate.for_domain("real_cav")[0]
+    assert small.simulate.scenarios["real_cav"]["train"] > tiny.simulate.scenarios["real_cav"]["train"]
+    assert small.simulate.scenarios["target"] == tiny.simulate.scenarios["target"]   # the generator's data as tiny
