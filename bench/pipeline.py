@@ -64,11 +64,11 @@ stamped with when and on which machine it was measured.
   N_train = 17,400 WOD training samples and N_gen = 36,000 generated samples (TYP §4.5); the
   paper gives no pair count for stage 2 and self-training, which are taken at N_train too.
   Not measured: the adaptation stage (its step is about the VQ-VAE x step plus two encoder passes).
-- fusion: inference time per frame of each fusion method (tasks/fusion.py build_model on
+- fusion: inference time per frame of each fusion method (tasks/fusion_train.py build_model on
   models/fusion.py + models/pointpillars.py, untrained weights) at the tiny and the paper
   profile's detector sizes, on one frame of --agents agents (the ego and cooperating agents
   up to 30 m away, random poses) with --points random points each (64-beam-like: ground
-  rings and obstacle hits within 60 m). Per frame: tasks/fusion.py `predict` on fresh inputs
+  rings and obstacle hits within 60 m). Per frame: tasks/fusion_score.py `predict` on fresh inputs
   (pillarizing every cloud, or the merged one for early fusion, the network, box decoding,
   late fusion's move into the ego frame, rotated NMS); network: the forward pass alone on
   prepared pillars. Methods take turns call by call, one warm-up call each (counted when it
@@ -126,7 +126,6 @@ STAGE_CMD = re.compile(r"\btyp\s+run\s+(\w+)")
 POLL_S = 0.05
 N_TRAIN, N_GEN = 17_400, 36_000    # TYP §4.5: WOD samples the generator is trained on / generates
 PROFILE_ORDER = ("tiny", "paper")
-FUSION_ORDER = ("none", "early", "late", "attfuse", "v2xvit")   # tasks/fusion.py METHODS
 WARMUP_S = 5.0                      # a first call longer than this counts: its warm-up share is small
 NOOP_STAGES = ("simulate", "voxelize")  # per-scene stages: a rerun with nothing changed has nothing to do
 NOOP_TARGET_S, FIXED_TARGET, STARTUP_TARGET_S = 4.0, 0.10, 1.0   # issue 18: no-op stage, fixed share, CLI
@@ -423,7 +422,7 @@ def fusion_table(result: dict) -> str:
     for profile in ordered(result["profiles"], PROFILE_ORDER):
         res = result["profiles"][profile]
         base = res["methods"]["none"]
-        for method in ordered(res["methods"], FUSION_ORDER):
+        for method in ordered(res["methods"], fusion_order()):
             r = res["methods"][method]
             lines.append(f"| {profile} | {res['detector']} | {method} | {1e3 * r['frame_s']:.1f} "
                          f"| {r['frame_s'] / base['frame_s']:.2f}× | {1e3 * r['network_s']:.1f} "
@@ -519,7 +518,7 @@ def plot(store: dict, path: Path) -> None:
             ax.invert_yaxis()
         else:
             profiles = ordered(res["profiles"], PROFILE_ORDER)
-            methods = ordered(next(iter(res["profiles"].values()))["methods"], FUSION_ORDER)
+            methods = ordered(next(iter(res["profiles"].values()))["methods"], fusion_order())
             x = np.arange(len(methods))
             width = 0.8 / len(profiles)
             for k, profile in enumerate(profiles):
@@ -1039,24 +1038,34 @@ def fusion_frame(rng, *, agents: int, points: int):
                         np.zeros(agents, np.int64), empty, np.zeros(0, np.int64), tuple(empty for _ in range(agents)))
 
 
+def fusion_order() -> tuple[str, ...]:
+    """The fusion methods in bench order (the registry's)."""
+    from models.fusion import METHODS
+
+    return tuple(METHODS)
+
+
 def time_fusion(cfg, *, agents: int, points: int, repeats: int, seed: int = 0) -> dict:
     """method -> {'frame_s', 'network_s'} for one frame, methods taking turns call by call."""
     import numpy as np
     import torch
 
-    from tasks import fusion
+    from models.fusion import METHODS
+    from tasks.fusion_batch import Inputs
+    from tasks.fusion_score import predict
+    from tasks.fusion_train import Trained, box_coder, build_model
 
     sample = fusion_frame(np.random.default_rng(seed), agents=agents, points=points)
     trained, batches = {}, {}
     for method in cfg.methods:
         torch.manual_seed(seed)
-        model = fusion.build_model(method, cfg).eval()
-        trained[method] = fusion.Trained(method, model, fusion.box_coder(cfg, model), key="bench", steps=0)
-        batches[method] = fusion.make_batch(method, fusion.Inputs([sample], cfg), [0])
+        model = build_model(METHODS[method].network, cfg).eval()
+        trained[method] = Trained(METHODS[method].network, model, box_coder(cfg, model), key="bench",
+                                  steps=0).as_method(method)
+        batches[method] = Inputs([sample], cfg).batch(method, [0])
     calls = {}
     for method in cfg.methods:
-        calls[(method, "frame_s")] = lambda m=method: fusion.predict(trained[m], fusion.Inputs([sample], cfg), cfg,
-                                                                      batch_size=1)
+        calls[(method, "frame_s")] = lambda m=method: predict(trained[m], Inputs([sample], cfg), cfg, batch_size=1)
         calls[(method, "network_s")] = lambda m=method: batches[m].run(trained[m].model)
     times: dict = {k: [] for k in calls}
     with torch.no_grad():

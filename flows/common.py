@@ -3,6 +3,7 @@ metrics written for DVC."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import re
 import shutil
@@ -37,9 +38,14 @@ def per_scene(fn: Callable, items: Sequence, *, label: Callable[[object], str], 
     """Run ``fn(item, **kwargs)`` for every item as Prefect tasks, with a rich progress bar.
 
     Results come back in ``items`` order. A failing item stops the stage with its name in
-    the error; bad input (TypError) is deterministic, so it is never retried.
+    the error; bad input (TypError) is deterministic, so it is never retried. Where each item
+    ran (a Dask worker's address, or ``thread``) is logged at INFO.
     """
-    wrapped = task(fn, name=f"{stage}-scene", retries=retries, retry_delay_seconds=[1, 4, 16][:retries],
+    @functools.wraps(fn)
+    def placed(item, **kw):
+        return fn(item, **kw), worker_address()
+
+    wrapped = task(placed, name=f"{stage}-scene", retries=retries, retry_delay_seconds=[1, 4, 16][:retries],
                    retry_condition_fn=_retry_unless_bad_input, cache_policy=NO_CACHE, log_prints=False)
     futures = {wrapped.with_options(task_run_name=f"{stage}-{label(item)}").submit(item, **kwargs): i
                for i, item in enumerate(items)}
@@ -50,13 +56,23 @@ def per_scene(fn: Callable, items: Sequence, *, label: Callable[[object], str], 
         for fut in as_completed(list(futures)):
             i = futures[fut]
             try:
-                results[i] = fut.result()
+                results[i], where = fut.result()
+                log.info("%s: %s ran on %s", stage, label(items[i]), where)
             except TypError:
                 raise
             except Exception as exc:
                 raise StageFailed(f"{stage}: scene {label(items[i])} failed: {type(exc).__name__}: {exc}") from exc
             bar.update(job, advance=1, description=label(items[i]))
     return results
+
+
+def worker_address() -> str:
+    """The address of the Dask worker running the calling task, or ``thread`` outside Dask."""
+    try:
+        from distributed import get_worker
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return "thread"
 
 
 #: OSErrors that say the input is wrong, not that the disk, network or worker hiccuped

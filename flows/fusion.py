@@ -3,12 +3,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow, task
-from prefect.cache_policies import NO_CACHE
+from prefect import flow
 
-from flows.common import Timer, numeric_leaves, write_metrics
+from flows.common import Timer, numeric_leaves, plain_task, write_metrics
 from tasks import fusion as stage
 from tasks import fusion_report
+from tasks.fusion_serve import ServedDetector
 from typ.config import load_config
 from typ.io import write_json
 from typ.tracking import stage_run
@@ -25,21 +25,21 @@ def fusion_flow(params: str = "params.yaml", root: str = ".") -> dict:
     with stage_run(STAGE, cfg, root=root_path) as run:
         with Timer() as timer:
             bench = stage.Benchmark(block, stage.Roots.from_config(block, root_path), out, log_fn=run.metrics)
-            table2 = task(stage.oracle_vs_generated, name="oracle-vs-generated", cache_policy=NO_CACHE)(bench)
-            table3 = task(stage.pretrain_finetune, name="pretrain-finetune", cache_policy=NO_CACHE)(bench)
-            curves = task(stage.robustness, name="robustness", cache_policy=NO_CACHE)(bench)
-        results = {**stage.summarize(bench, table2, table3, curves), "seconds_total": round(timer.seconds, 3),
+            plain_task(bench.train_all, "train")()
+            results = plain_task(bench.score, "score")()
+        results = {**results, "seconds_total": round(timer.seconds, 3),
                    "seconds_training": round(sum(bench.seconds.values()), 3)}
-        reports = task(fusion_report.write_report, name="report", cache_policy=NO_CACHE)(
-            results, block, root_path / block.reports)
         write_json(out / "results.json", results)
+        write_json(out / "curves.json", bench.curves())
+        reports = plain_task(fusion_report.write_report, "report")(results, block, root_path / block.reports)
         metrics = {**fusion_report.metrics_of(results), "seconds_total": results["seconds_total"],
                    "seconds_training": results["seconds_training"]}
         path = write_metrics(STAGE, metrics, root_path)
         run.metrics(numeric_leaves(metrics))
-        for p in [path, out / "results.json", *reports]:
+        for p in [path, out / "results.json", out / "curves.json", *reports]:
             run.artifact(p)
-        for method in block.methods:  # Table 2's oracle detectors, servable from MLflow
-            run.log_model(f"fusion-{method}", stage.ServedDetector(bench.oracle(method)).eval(),
-                          stage.ServedDetector.example(method, bench.test))
+        test = bench.test_inputs()
+        for method, oracle in bench.plan.robustness.items():   # Table 1's oracle detectors, servable from MLflow
+            served = ServedDetector(bench.networks[oracle][0].as_method(method)).eval()
+            run.log_model(f"fusion-{method}", served, ServedDetector.example(method, test))
     return metrics

@@ -1,12 +1,23 @@
 """Collaborative fusion on one PointPillars detector: none, early, late, AttFuse, V2X-ViT (TYP §4).
 
-Batch layout shared by the intermediate-fusion modules (``NoFusion``, ``AttFuse``, ``V2XViT``):
-B samples of L agent slots, agent 0 the ego. ``pillars`` is ``pillarize`` of the B*L clouds in
-b-major order (cloud ``b * L + l``, each in its own sensor frame; empty clouds for unused slots);
-``agent_mask`` (B, L) bool marks present agents within communication range (``warp.
-communication_mask``), ``[:, 0]`` all True; ``transforms`` (B, L, 4, 4) float64 agent->ego
-(``typ.geometry.relative_transform(agent_pose, ego_pose)``). Masked slots never reach the
-network, not even its BatchNorm statistics. Outputs are the ego's head dict (``psm``, ``rm``, ``dm``).
+Every method is a :class:`FusionModule` with one forward signature,
+``module(pillars, *, agent_mask, transforms, time_delay=None, agent_types=None)``, and the hooks
+the benchmark needs: ``detections`` (head -> ego-frame boxes), ``message_bytes`` and
+``message_bits`` (what a cooperating agent sends, and its quantisation), ``warm_start`` (from a
+trained single-agent detector). :data:`METHODS` is the registry: each :class:`FusionMethod`
+names its module, display name, inputs, training targets, message and whether it runs another
+method's network (no fusion runs late fusion's single-agent detector on the ego's cloud only,
+as OpenCOOD). Its order is the order of the tables; ``typ.config`` takes the allowed names
+from it. A new method is a module and an entry here (plus a config block if it has options).
+
+Batch layout: B samples of L agent slots, agent 0 the ego. ``pillars`` is ``pillarize`` of the
+B*L clouds in b-major order (cloud ``b * L + l``, each in its own sensor frame; empty clouds for
+unused slots); ``agent_mask`` (B, L) bool marks present agents within communication range
+(``warp.communication_mask``), ``[:, 0]`` all True; ``transforms`` (B, L, 4, 4) float64
+agent->ego (``typ.geometry.relative_transform(agent_pose, ego_pose)``). Early fusion's batches
+have L = 1, the merged ego-frame cloud. Masked slots never reach the network, not even its
+BatchNorm statistics. Outputs are the ego's head dict (``psm``, ``rm``, ``dm``); late fusion's
+has a row per present agent.
 
 Following OpenCOOD (``point_pillar_intermediate.py`` + ``att_bev_backbone.py`` + ``fuse_modules/
 self_attn.py`` for AttFuse; ``point_pillar_transformer.py`` + ``fuse_modules/v2xvit_basic.py``,
@@ -16,8 +27,11 @@ STTF does, instead of projecting points first; cells a warped map does not cover
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -29,6 +43,9 @@ from models.pointpillars import AnchorHead, PointPillars, pillars_to_bev
 from models.warp import warp_bev, warp_valid_mask
 from typ.errors import TypError
 from typ.geometry import transform_points
+
+BYTES_PER_POINT = 16        # x, y, z, intensity as float32
+BYTES_PER_BOX = 32          # 7 box parameters and a score as float32
 
 
 def merge_agent_points(clouds: Sequence, transforms, agent_mask=None) -> np.ndarray:
@@ -81,17 +98,64 @@ def _to_ego(x: torch.Tensor, agent_mask: torch.Tensor, transforms, *, voxel_size
     return flat.view(b, l, c, h, w), mask.view(b, l, h, w)
 
 
-class NoFusion(nn.Module):
-    """The ego's own detector on the ego's own points ("No Fusion" rows of TYP Tables 1–3)."""
+def quantize(x: torch.Tensor, bits: int, dims: tuple[int, ...]) -> torch.Tensor:
+    """Uniform min/max quantisation to ``2**bits`` levels and back, one (min, step) per slice
+    reduced over ``dims`` (the spatial dims: one pair per channel)."""
+    lo, hi = x.amin(dims, keepdim=True), x.amax(dims, keepdim=True)
+    step = (hi - lo).clamp(min=1e-12) / (2 ** bits - 1)
+    return torch.round((x - lo) / step) * step + lo
 
-    def __init__(self, *, detector: PointPillars):
-        """detector: the single-agent PointPillars."""
+
+def _dense_map_bytes(maps: Sequence[tuple[int, int, int]], bits: int | None) -> float:
+    """Bytes of dense (C, h, w) maps at ``bits`` per value (None: float32), plus a float32
+    (min, step) pair per channel when quantised."""
+    value_bits = 32 if bits is None else bits
+    return float(sum(c * h * w * value_bits / 8 + (0 if bits is None else 8 * c) for c, h, w in maps))
+
+
+class FusionModule(nn.Module):
+    """What every fusion method's module offers the benchmark (defaults for a one-map detector).
+
+    ``forward(pillars, *, agent_mask, transforms, time_delay=None, agent_types=None)`` -> head dict
+    (module doc's batch layout); :meth:`detections` decodes it into ego-frame boxes per sample;
+    :meth:`message_bytes` is what one cooperating agent sends per frame; ``message_bits`` (None:
+    float32) quantises the cooperating agents' features where a method sends features
+    (:func:`compressed`); :meth:`warm_start` copies a trained single-agent detector in."""
+
+    #: quantisation of the features cooperating agents send (None: float32; features only)
+    message_bits: int | None = None
+
+    def __init__(self, *, detector: PointPillars | None = None):
+        """detector: the PointPillars whose pillar net, backbone and head the method uses (None: the
+        subclass keeps the parts it uses itself)."""
         super().__init__()
-        self.detector = detector
-        self.feature_stride = detector.feature_stride
+        if detector is not None:
+            self.detector = detector
+            self.feature_stride = detector.feature_stride
 
-    def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms=None, agent_types=None,
-                time_delay=None) -> dict[str, torch.Tensor]:
+    def detections(self, output: dict[str, torch.Tensor], coder: AnchorBoxCoder, *, agent_mask: torch.Tensor,
+                   transforms, score_threshold: float, max_boxes: int | None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per sample (boxes (K, 7) in the ego frame, scores (K,)) above ``score_threshold``, before NMS."""
+        return coder.decode_predictions(output, score_threshold=score_threshold, max_boxes=max_boxes)
+
+    def message_bytes(self, *, points: float, boxes: float) -> float:
+        """Bytes one cooperating agent sends the ego per frame, given its mean cloud size ``points``
+        and mean boxes above the score threshold ``boxes`` (nothing here: no fusion)."""
+        return 0.0
+
+    def warm_start(self, single: PointPillars) -> None:
+        """Start from a trained single-agent detector: its weights where this module has them."""
+        self.detector.load_state_dict(single.state_dict())
+
+
+class NoFusion(FusionModule):
+    """The ego's own detector on the ego's own points ("No Fusion" rows of TYP Tables 1–3).
+
+    It is :class:`LateFusion`'s detector (the same state dict): OpenCOOD's no fusion runs the
+    single-agent detector on the ego's cloud only."""
+
+    def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms=None, time_delay=None,
+                agent_types=None) -> dict[str, torch.Tensor]:
         """Batch layout of the module doc; only the ego slots are encoded."""
         agent_mask = _check(agent_mask)
         b, l = agent_mask.shape
@@ -101,38 +165,40 @@ class NoFusion(nn.Module):
         return d.head(d.backbone(d.bev(pillars, b * l, keep=ego.flatten())))
 
 
-class EarlyFusion(nn.Module):
-    """Early fusion (Cooper): the plain detector on :func:`merge_agent_points` of each sample."""
-
-    def __init__(self, *, detector: PointPillars):
-        """detector: the single-agent PointPillars."""
-        super().__init__()
-        self.detector = detector
-        self.feature_stride = detector.feature_stride
+class EarlyFusion(FusionModule):
+    """Early fusion (Cooper): the plain detector on :func:`merge_agent_points` of each sample;
+    its batches have one slot per sample, the merged ego-frame cloud."""
 
     merge_points = staticmethod(merge_agent_points)
 
-    def forward(self, pillars: dict, *, batch_size: int) -> dict[str, torch.Tensor]:
-        """``pillarize`` of the B merged, ego-frame clouds -> the ego's head dict."""
-        return self.detector(pillars, batch_size)
+    def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms=None, time_delay=None,
+                agent_types=None) -> dict[str, torch.Tensor]:
+        """``pillarize`` of the B merged, ego-frame clouds (agent_mask (B, 1)) -> the ego's head dict."""
+        agent_mask = _check(agent_mask)
+        return self.detector(pillars, agent_mask.shape[0] * agent_mask.shape[1])
+
+    def message_bytes(self, *, points: float, boxes: float) -> float:
+        return float(points * BYTES_PER_POINT)
 
 
-class LateFusion(nn.Module):
+class LateFusion(FusionModule):
     """Late fusion: every agent detects in its own frame; boxes meet in the ego frame for NMS."""
 
-    def __init__(self, *, detector: PointPillars):
-        """detector: the single-agent PointPillars shared by all agents."""
-        super().__init__()
-        self.detector = detector
-        self.feature_stride = detector.feature_stride
-
-    def forward(self, pillars: dict, *, agent_mask: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms=None, time_delay=None,
+                agent_types=None) -> dict[str, torch.Tensor]:
         """Head dicts of the present agents, (V, ...) with V = agent_mask.sum() in b-major order;
         train them with each agent's own labels (OpenCOOD's LateFusionDataset)."""
         agent_mask = _check(agent_mask)
         b, l = agent_mask.shape
         d = self.detector
         return d.head(d.backbone(d.bev(pillars, b * l, keep=agent_mask.flatten())))
+
+    def detections(self, output, coder, *, agent_mask, transforms, score_threshold, max_boxes):
+        return self.boxes_in_ego(output, coder, agent_mask=agent_mask, transforms=transforms,
+                                 score_threshold=score_threshold, max_boxes_per_agent=max_boxes)
+
+    def message_bytes(self, *, points: float, boxes: float) -> float:
+        return float(boxes * BYTES_PER_BOX)
 
     @staticmethod
     def boxes_in_ego(output: dict[str, torch.Tensor], box_coder: AnchorBoxCoder, *, agent_mask: torch.Tensor,
@@ -151,15 +217,11 @@ class LateFusion(nn.Module):
         return [(torch.cat([m[0] for m in ms]), torch.cat([m[1] for m in ms])) for ms in merged]
 
 
-class AttFuse(nn.Module):
+class AttFuse(FusionModule):
     """OPV2V's AttFuse: at every backbone level, per BEV cell, the ego's feature attends (scaled
-    dot product, no projections) over all agents' features at that cell; then upsample + head."""
-
-    def __init__(self, *, detector: PointPillars):
-        """detector: supplies the pillar net, backbone and head."""
-        super().__init__()
-        self.detector = detector
-        self.feature_stride = detector.feature_stride
+    dot product, no projections) over all agents' features at that cell; then upsample + head.
+    Messages are the cooperating agents' level maps, quantised as the ego receives them (after
+    the warp, which interpolates, so the value range is the sent one)."""
 
     @staticmethod
     def attend(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -169,8 +231,8 @@ class AttFuse(nn.Module):
         weight = torch.softmax(score.masked_fill(~mask, float("-inf")), dim=1)
         return (weight[:, :, None] * x).sum(1)
 
-    def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms, agent_types=None,
-                time_delay=None) -> dict[str, torch.Tensor]:
+    def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms, time_delay=None,
+                agent_types=None) -> dict[str, torch.Tensor]:
         """Batch layout of the module doc -> the ego's head dict."""
         agent_mask = _check(agent_mask)
         b, l = agent_mask.shape
@@ -179,8 +241,15 @@ class AttFuse(nn.Module):
         for feat, stride in zip(d.backbone.down(d.bev(pillars, b * l, keep=keep)), d.backbone.level_strides):
             x, mask = _to_ego(_regroup(feat, keep, b, l), agent_mask, transforms, voxel_size=d.voxel_size,
                               stride=stride, lidar_range=d.lidar_range)
+            if self.message_bits is not None:
+                x = torch.cat([x[:, :1], quantize(x[:, 1:], self.message_bits, (3, 4))], 1)
             fused.append(self.attend(x, mask))
         return d.head(d.backbone.up(fused))
+
+    def message_bytes(self, *, points: float, boxes: float) -> float:
+        d = self.detector
+        return _dense_map_bytes([(c, d.ny // s, d.nx // s) for c, s in
+                                 zip(d.backbone.level_channels, d.backbone.level_strides)], self.message_bits)
 
 
 class _TypedLinear(nn.Module):
@@ -280,7 +349,7 @@ class PyramidWindowAttention(nn.Module):
         return sum(o * gate[:, :, i, None, None, :] for i, o in enumerate(outs))
 
 
-class V2XViT(nn.Module):
+class V2XViT(FusionModule):
     """V2X-ViT (Xu et al., ECCV 2022): backbone -> shrink conv -> per-agent delay encoding (RTE)
     -> warp into the ego frame (STTF) -> ``depth`` x [HMSA, multi-scale window attention, MLP],
     pre-norm residuals -> the ego's map -> head. Defaults: OpenCOOD's ``point_pillar_v2xvit.yaml``."""
@@ -302,6 +371,7 @@ class V2XViT(nn.Module):
         self.nx, self.ny = detector.nx, detector.ny
         self.voxel_size, self.lidar_range = detector.voxel_size, detector.lidar_range
         self.feature_stride = detector.feature_stride * shrink_stride
+        self.dim = dim
         self.pad_to = int(np.lcm.reduce([int(s) for s in window_sizes]))
         self.shrink = nn.Sequential(nn.Conv2d(detector.backbone.out_channels, dim, 3, stride=shrink_stride, padding=1),
                                     nn.ReLU(), nn.Conv2d(dim, dim, 3, padding=1), nn.ReLU())
@@ -327,6 +397,11 @@ class V2XViT(nn.Module):
         keep = agent_mask.flatten()
         bev = pillars_to_bev(self.pillar_net, pillars, batch_size=b * l, nx=self.nx, ny=self.ny, keep=keep)
         feat = self.shrink(self.backbone(bev))
+        if self.message_bits is not None:          # rows: present slots, b-major; the egos keep float32
+            ego = torch.zeros_like(agent_mask)
+            ego[:, 0] = True
+            sent = ~ego[agent_mask]
+            feat = torch.where(sent[:, None, None, None], quantize(feat, self.message_bits, (2, 3)), feat)
         x = _regroup(feat, keep, b, l)                                              # (B, L, C, h, w)
         types = torch.zeros_like(agent_mask, dtype=torch.long) if agent_types is None else agent_types.long()
         dt = (torch.zeros_like(types) if time_delay is None else time_delay.long()) * self.rte_ratio
@@ -346,3 +421,98 @@ class V2XViT(nn.Module):
             x = window_att(norm_w(x)) + x
             x = mlp(norm_f(x)) + x
         return self.head(x[:, 0, :h, :w].permute(0, 3, 1, 2))
+
+    def message_bytes(self, *, points: float, boxes: float) -> float:
+        """The shrunk map (dim, h, w) the agent sends before the warp."""
+        return _dense_map_bytes([(self.dim, self.ny // self.feature_stride, self.nx // self.feature_stride)],
+                                self.message_bits)
+
+    def warm_start(self, single: PointPillars) -> None:
+        """The pillar net and backbone; the head sits on the transformer's width and stays fresh."""
+        self.pillar_net.load_state_dict(single.pillar_net.state_dict())
+        self.backbone.load_state_dict(single.backbone.state_dict())
+
+
+# ------------------------------------------------------------------ registry
+
+
+@contextlib.contextmanager
+def compressed(module: FusionModule, bits: int | None):
+    """``module`` with the cooperating agents' features quantised to ``bits`` while inside."""
+    if bits is not None and METHODS[method_of(module)].message != "features":
+        raise TypError("fusion", "compression", "a method whose agents send features "
+                       f"({[m.name for m in METHODS.values() if m.message == 'features']})", method_of(module))
+    saved = module.message_bits
+    module.message_bits = bits
+    try:
+        yield module
+    finally:
+        module.message_bits = saved
+
+
+@dataclass(frozen=True)
+class FusionMethod:
+    """One fusion method of the benchmark: what it is called, what it takes and learns from, and
+    what it sends.
+
+    name: the config's name; display: the row name in TYP Tables 1–3; module: its
+    :class:`FusionModule`; inputs: the clouds of a batch — ``ego`` (the ego's only), ``merged``
+    (all agents' moved into the ego frame, early fusion) or ``agents`` (each in its own frame);
+    targets: ``own`` (a head row per present agent, its own labels in its own frame: the
+    single-agent detector) or ``fused`` (a row per sample, the fused ground truth in the ego
+    frame); trained_as: another method whose trained network this one runs (None: it is trained
+    itself); options: the config block of the module's extra constructor arguments (None: none);
+    message: what a cooperating agent sends (``nothing``, ``points``, ``boxes``, ``features``);
+    warm_start: whether it may start from the single-agent detector (:meth:`FusionModule.warm_start`).
+    The order of :data:`METHODS` is the order of the tables and benches.
+    """
+
+    name: str
+    display: str
+    module: type[FusionModule]
+    inputs: Literal["ego", "merged", "agents"]
+    targets: Literal["own", "fused"]
+    message: Literal["nothing", "points", "boxes", "features"]
+    trained_as: str | None = None
+    options: str | None = None
+    warm_start: bool = False
+
+    @property
+    def network(self) -> str:
+        """The method whose training run makes the network this method runs."""
+        return self.trained_as or self.name
+
+
+#: every fusion method, in bench order; typ.config derives the allowed ``fusion.methods`` from it
+METHODS: dict[str, FusionMethod] = {m.name: m for m in (
+    FusionMethod("none", "No Fusion", NoFusion, inputs="ego", targets="own", message="nothing", trained_as="late"),
+    FusionMethod("early", "Early Fusion", EarlyFusion, inputs="merged", targets="fused", message="points",
+                 warm_start=True),
+    FusionMethod("late", "Late Fusion", LateFusion, inputs="agents", targets="own", message="boxes"),
+    FusionMethod("attfuse", "AttFuse", AttFuse, inputs="agents", targets="fused", message="features",
+                 warm_start=True),
+    FusionMethod("v2xvit", "V2X-ViT", V2XViT, inputs="agents", targets="fused", message="features",
+                 options="v2xvit", warm_start=True),
+)}
+#: the method that trains the single-agent detector every warm start begins from
+SINGLE_AGENT = "late"
+
+
+def method_of(module: nn.Module) -> str:
+    """The registry name of a fusion module's class."""
+    for m in METHODS.values():
+        if type(module) is m.module:
+            return m.name
+    raise TypError("fusion", "module", f"a module of {[m.name for m in METHODS.values()]}", type(module).__name__)
+
+
+def get_method(name: str) -> FusionMethod:
+    if name not in METHODS:
+        raise TypError("fusion", "method", f"one of {list(METHODS)}", name)
+    return METHODS[name]
+
+
+def build(name: str, detector: PointPillars, options: dict | None = None) -> FusionModule:
+    """Method ``name``'s module around ``detector`` (``options``: its config block's fields)."""
+    m = get_method(name)
+    return m.module(detector=detector, **(options or {}))

@@ -18,20 +18,34 @@ One sample per (scenario, timestamp of the ego), scenarios sorted by name, times
   first) kept. As there, the ego's own car is in the ground truth whenever a cooperating
   agent labels it.
 - Delay (``time_delay_calculation``, ``async_mode: sim``): cooperating agents send the data
-  of ``delay_frames`` frames earlier (10 Hz: 100 ms a frame), clamped at the first frame of
-  the sequence; the transform maps the agent's delayed pose to the ego's current pose
-  (``cur_ego_pose_flag``). The ego is never delayed.
+  of ``delay_frames`` frames earlier (10 Hz: 100 ms a frame); the transform maps the agent's
+  delayed pose to the ego's current pose (``cur_ego_pose_flag``). The ego is never delayed.
+  OpenCOOD clamps the delay at the first frame of a sequence, so on short sequences the delay
+  applied is less than the one asked for; here only frames ``t >= delay_frames`` are samples
+  (and none before ``first_frame``, so that several delays can be scored on the same frames),
+  every message is exactly ``delay_frames`` old (``FusionSample.time_delay`` says so).
 - Pose noise (``add_loc_noise``): Gaussian noise on the cooperating agents' x and y
   (``position_std`` m) and yaw (``heading_std_deg``) before the transform is formed; the
   ego's pose, the ground truth and the communication range stay noise-free. OpenCOOD
   re-seeds one global generator with the same seed on every call, so every agent of every
   sample gets the same draw; here each (sample, agent) has its own stream of ``seed``.
 - Points within the 3.9 m x 2.2 m footprint around each sensor are dropped (``mask_ego_points``).
+- Visibility (``min_points``, not OpenCOOD's: OPV2V labels every vehicle in range, seen or not):
+  a vehicle is ground truth only when at least ``min_points`` points of the agents' *true*
+  current clouds (the ego's and the cooperating agents' in range, own cars masked) fall in its
+  box, as V2V4Real labels what its fused LiDAR saw and Waymo's LEVEL_2 drops boxes without a
+  point; an agent's own labels need that many points of its own true cloud. True clouds even
+  with ``cav_root``, so that generated cooperators train on the same labels as true ones.
 
 ``cav_root`` replaces the cooperating agents' clouds by the ones at the same
 ``<scenario>/<agent>/<timestamp>.pcd`` under another root (TYP's generated reference views),
 while the ego's cloud, all poses and all labels come from ``root``; the generated agent's
-yaml must carry the same ``lidar_pose``.
+yaml must carry the same ``lidar_pose``. A generated cloud covers only the generator's grid
+around its agent (±51.2 m in x and y), so with ``cav_extent`` (the half side of that square,
+for ``cav_root`` clouds or a generated split whose cooperating agents are all generated) a
+cooperating agent's labels are kept only where all four BEV corners lie inside the square, in
+its own labels and in what it adds to the fused ground truth; the ego's labels, from its true
+cloud, are kept whole.
 """
 from __future__ import annotations
 
@@ -47,6 +61,7 @@ from typ import geometry
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene
 from typ.formats.pcd import read_pcd
+from typ.geometry import points_in_boxes
 from typ.scene import AgentView
 
 #: OpenCOOD's ``mask_ego_points``: the sensor's own car, [-1.95, 1.95] x [-1.1, 1.1] m
@@ -129,14 +144,19 @@ class FusionDataset(Sequence):
     def __init__(self, root: str | os.PathLike, *, lidar_range: Sequence[float], comm_range: float = 70.0,
                  cav_root: str | os.PathLike | None = None, delay_frames: int = 0, position_std: float = 0.0,
                  heading_std_deg: float = 0.0, seed: int = 0, max_scenarios: int | None = None,
-                 max_agents: int | None = None, cache: bool = True):
+                 max_agents: int | None = None, first_frame: int = 0, cav_extent: float | None = None,
+                 min_points: int = 0, cache: bool = True):
         """root: a split folder (``<domain>/<split>``) of scenarios; lidar_range: [x_min, y_min, z_min,
         x_max, y_max, z_max] m of the detector (ground truth is kept inside it); comm_range: m;
         cav_root: another split folder the cooperating agents' clouds come from; delay_frames:
         age of the cooperating agents' data in frames; position_std (m) / heading_std_deg (deg):
         pose noise of the cooperating agents; seed: of that noise; max_scenarios: the first N
         scenarios only (None: all); max_agents: at most this many agents per sample, the ego
-        included (OpenCOOD's ``max_cav``; None: all); cache: keep read agent views in memory."""
+        included (OpenCOOD's ``max_cav``; None: all); first_frame: frames before it are not samples
+        (frames before ``delay_frames`` never are); cav_extent: half side (m) of the square a
+        cooperating agent's (generated) cloud covers around it (None: unlimited); min_points: a label
+        counts when at least this many true points fall in its box (0: every label); cache: keep
+        read agent views in memory."""
         self.root = Path(root)
         where = str(self.root)
         r = [float(v) for v in lidar_range]
@@ -153,6 +173,12 @@ class FusionDataset(Sequence):
             raise TypError(where, "max_scenarios", "None or a count >= 1", max_scenarios)
         if max_agents is not None and max_agents < 1:
             raise TypError(where, "max_agents", "None or a count >= 1", max_agents)
+        if isinstance(first_frame, bool) or not isinstance(first_frame, (int, np.integer)) or first_frame < 0:
+            raise TypError(where, "first_frame", "an integer >= 0 (a frame index)", first_frame)
+        if cav_extent is not None and not (np.isfinite(cav_extent) and cav_extent > 0):
+            raise TypError(where, "cav_extent", "None or a half side > 0 (m)", cav_extent)
+        if isinstance(min_points, bool) or not isinstance(min_points, (int, np.integer)) or min_points < 0:
+            raise TypError(where, "min_points", "an integer >= 0 (points in a box)", min_points)
         self.lidar_range, self.comm_range = tuple(r), float(comm_range)
         self.cav_root = None if cav_root is None else Path(cav_root)
         if self.cav_root is not None and not self.cav_root.is_dir():
@@ -160,6 +186,9 @@ class FusionDataset(Sequence):
         self.delay_frames, self.position_std, self.heading_std_deg = int(delay_frames), float(position_std), \
             float(heading_std_deg)
         self.seed, self.max_agents, self.cache = int(seed), max_agents, cache
+        self.first_frame = int(first_frame)
+        self.cav_extent = None if cav_extent is None else float(cav_extent)
+        self.min_points = int(min_points)
         scenarios = list_scenarios(self.root)[:max_scenarios]
         if not scenarios:
             raise TypError(where, "scenarios", "at least one scenario folder", "none")
@@ -170,7 +199,11 @@ class FusionDataset(Sequence):
             if not timestamps:
                 raise TypError(folder / agents[0], "timestamps", "at least one <timestamp>.yaml of the ego", "none")
             self.scenarios.append((folder, agents, timestamps))
-            self.index += [(s, t) for t in range(len(timestamps))]
+            self.index += [(s, t) for t in range(max(self.first_frame, self.delay_frames), len(timestamps))]
+        if not self.index:
+            raise TypError(where, "delay_frames", f"sequences longer than the first frame scored "
+                           f"(max(first_frame, delay_frames) = {max(self.first_frame, self.delay_frames)})",
+                           f"at most {max(len(t) for _, _, t in self.scenarios)} frames")
         self._views: dict[tuple[str, str, str], AgentView] = {}
         self._cav_clouds: dict[tuple[str, str, str], np.ndarray] = {}
 
@@ -182,7 +215,8 @@ class FusionDataset(Sequence):
         kw = dict(lidar_range=self.lidar_range, comm_range=self.comm_range, cav_root=self.cav_root,
                   delay_frames=self.delay_frames, position_std=self.position_std,
                   heading_std_deg=self.heading_std_deg, seed=self.seed, max_scenarios=len(self.scenarios),
-                  max_agents=self.max_agents, cache=self.cache)
+                  max_agents=self.max_agents, first_frame=self.first_frame, cav_extent=self.cav_extent,
+                  min_points=self.min_points, cache=self.cache)
         other = FusionDataset(self.root, **{**kw, **changes})
         other._views = self._views
         if other.cav_root == self.cav_root:
@@ -223,7 +257,7 @@ class FusionDataset(Sequence):
         s, t = self.index[i]
         folder, agents, timestamps = self.scenarios[s]
         now = timestamps[t]
-        sent = timestamps[max(0, t - self.delay_frames)]
+        sent = timestamps[t - self.delay_frames]
         ego = self._view(folder, agents[0], now)
         others = agents[1:]
         sent_views = [self._view(folder, a, sent) for a in others]
@@ -235,7 +269,7 @@ class FusionDataset(Sequence):
 
         ids, clouds, transforms, true_transforms, delays, agent_boxes = \
             [ego.agent_id], [mask_ego_points(ego.points)], [np.eye(4)], [np.eye(4)], [0], [self._own(ego)]
-        gt_boxes, gt_ids = [ego.boxes], [ego.box_ids]
+        gt_boxes, gt_ids, seen = [ego.boxes], [ego.box_ids], [clouds[0]]
         for j in chosen:
             view_sent, agent = sent_views[j], others[j]
             view_now = self._view(folder, agent, now)
@@ -248,19 +282,42 @@ class FusionDataset(Sequence):
             transforms.append(geometry.relative_transform(pose, ego.pose))
             now_to_ego = geometry.relative_transform(view_now.pose, ego.pose)
             true_transforms.append(now_to_ego)
-            delays.append(t - timestamps.index(sent))
-            agent_boxes.append(self._own(view_sent))
-            gt_boxes.append(geometry.transform_boxes(now_to_ego, view_now.boxes))
-            gt_ids.append(view_now.box_ids)
+            delays.append(self.delay_frames)
+            own, now_boxes, now_ids = self._own(view_sent), view_now.boxes, view_now.box_ids
+            if self.cav_extent is not None:
+                own = own[self._covered(own)]
+                covered = self._covered(now_boxes)
+                now_boxes, now_ids = now_boxes[covered], now_ids[covered]
+            agent_boxes.append(own)
+            gt_boxes.append(geometry.transform_boxes(now_to_ego, now_boxes))
+            gt_ids.append(now_ids)
+            if self.min_points:
+                seen.append(geometry.transform_points(now_to_ego, mask_ego_points(view_now.points)))
         boxes, box_ids = np.concatenate(gt_boxes).reshape(-1, 7), np.concatenate(gt_ids).astype(np.int64)
         keep = boxes_in_range(boxes, self.lidar_range)
         boxes, box_ids = boxes[keep], box_ids[keep]
         _, first = np.unique(box_ids, return_index=True)
         first = np.sort(first)
+        if self.min_points:
+            first = first[self._visible(np.concatenate(seen), boxes[first])]
         return FusionSample(scenario=folder.name, timestamp=now, agent_ids=tuple(ids), clouds=tuple(clouds),
                             transforms=np.stack(transforms), true_transforms=np.stack(true_transforms),
                             time_delay=np.asarray(delays, dtype=np.int64), gt_boxes=boxes[first],
                             gt_ids=box_ids[first], agent_boxes=tuple(agent_boxes))
 
     def _own(self, view: AgentView) -> np.ndarray:
-        return view.boxes[boxes_in_range(view.boxes, self.lidar_range)]
+        """The view's labels in range (and, with ``min_points``, seen by its own true cloud)."""
+        boxes = view.boxes[boxes_in_range(view.boxes, self.lidar_range)]
+        return boxes[self._visible(mask_ego_points(view.points), boxes)] if self.min_points else boxes
+
+    def _visible(self, points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+        """(K,) bool: at least ``min_points`` of ``points`` (same frame) inside each box."""
+        if len(boxes) == 0:
+            return np.zeros(0, dtype=bool)
+        near = np.hypot(points[:, 0], points[:, 1]) <= np.hypot(boxes[:, 0], boxes[:, 1]).max() + 5.0
+        return points_in_boxes(points[near], boxes).sum(0) >= self.min_points
+
+    def _covered(self, boxes: np.ndarray) -> np.ndarray:
+        """(K,) bool: boxes (agent frame) inside the square a generated cloud covers."""
+        e = self.cav_extent
+        return boxes_in_range(boxes, (-e, -e, -np.inf, e, e, np.inf), xy_only=True)

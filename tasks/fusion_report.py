@@ -1,32 +1,47 @@
-"""The fusion stage's outputs: ``metrics/fusion.json`` and ``reports/fusion.md`` + plots.
+"""The fusion benchmark's reports: ``reports/fusion.md`` + plots, and ``metrics/fusion.json``.
 
-Pure functions of the results dict :func:`tasks.fusion.summarize` builds: the AP tables in the
-shape of TYP Tables 1–3 (AP@0.5 / AP@0.7 by range), the PR curves and the robustness curves.
+Pure functions of the results dict (:func:`tasks.fusion_score.score` plus what the stage adds):
+TYP Tables 1–3 as AP@0.5 / AP@0.7 by range with 95 % bootstrap intervals, the comparisons the
+issue's targets name ("beats" only where intervals do not overlap), PR curves and robustness
+curves. :func:`write_report` is the one entry point (the ``evaluate`` stage can call it too).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-from tasks.fusion import IOU_THRESHOLDS, METHOD_NAMES, METHODS
+from models.fusion import METHODS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
 
-BANDS = (("0-30", "s"), ("30-50", "m"), ("50-100", "l"), ("overall", "all"))
+BANDS = (("overall", "all"), ("0-30", "0–30"), ("30-50", "30–50"), ("50-100", "50–100"))
+KEYS = (("ap50", "AP@0.5"), ("ap70", "AP@0.7"))
+TABLE1_ROWS = {"ego": "ego's gt only", "oracle": "gt (oracle)", "generated": "TYP (generated)"}
+PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)"}
 
 
-def _ap_only(cell):
-    """A table cell without its PR curve; ``skipped`` cells keep their reason."""
-    if cell is None or "skipped" in cell:
-        return cell
-    return {k: cell[k] for k in IOU_THRESHOLDS}
+def _iv(c: dict | None) -> str:
+    if c is None:
+        return "—"
+    return f"{c['value']:.2f} [{c['low']:.2f}, {c['high']:.2f}]" if c.get("low") is not None else f"{c['value']:.2f}"
+
+
+def _value(cell: dict | None, key: str = "ap50", band: str = "overall") -> dict | None:
+    return None if cell is None else cell[key][band]
+
+
+def _ap_only(cell: dict | None) -> dict | None:
+    """A cell without its PR curve."""
+    return None if cell is None else {k: v for k, v in cell.items() if k != "pr"}
 
 
 def metrics_of(results: dict) -> dict:
-    """``metrics/fusion.json``: the AP tables, robustness curves at AP@0.5 and bytes per message."""
+    """``metrics/fusion.json``: tables (value, low, high per band), robustness at AP@0.5, bytes per
+    message, applied delays, the target comparisons and what was run."""
+    t = results["tables"]
     rob = results["robustness"]
     curves = {}
     for method, entry in rob["methods"].items():
-        c = {sweep: {str(level): {"overall": v["ap50"]["overall"], "50-100": v["ap50"]["50-100"]}
+        c = {sweep: {str(level): {b: v["ap50"][b] for b in ("overall", "50-100")}
                      for level, v in zip(rob["levels"][sweep], entry[sweep])} for sweep in rob["levels"]}
         c["bytes_per_message"] = round(entry["bytes_per_message"], 1)
         if "quantization" in entry:
@@ -34,88 +49,127 @@ def metrics_of(results: dict) -> dict:
                                                   "bytes_per_message": round(q["bytes_per_message"], 1)}
                                  for q in entry["quantization"]}
         curves[method] = c
-    return {"test_frames": results["test_frames"], "test_gt_boxes": results["test_gt_boxes"],
-            "train_frames": results["train_frames"], "runs": results["runs"],
-            "table2": {m: {k: _ap_only(v) for k, v in row.items()} for m, row in results["table2"].items()},
-            "table3": {m: {p: (row if "skipped" in row else {ft: _ap_only(c) for ft, c in row.items()})
-                           for p, row in rows.items()} for m, rows in results["table3"].items()},
-            "robustness": curves}
+    return {"test_frames": results["test_frames"], "test_scenarios": results["test_scenarios"],
+            "test_gt_boxes": results["test_gt_boxes"], "train_frames": results["train_frames"],
+            "seeds": results["seeds"], "runs": results["runs"], "trainings": results["trainings"],
+            "table1": {m: {r: _ap_only(c) for r, c in row.items()} for m, row in t.get("table1", {}).items()},
+            "table3": {m: {p: {ft: _ap_only(c) for ft, c in cols.items()} for p, cols in rows.items()}
+                       for m, rows in t.get("table3", {}).items()},
+            "robustness": curves, "applied_delay_ms": rob["applied_delay_ms"],
+            "delay_frames_scored": rob["delay_frames_scored"], "targets": targets(results)}
 
 
-def _fmt(v) -> str:
-    return "—" if v is None else f"{v:.2f}"
+def _above(a: dict | None, b: dict | None) -> bool | None:
+    """A's interval wholly above B's (None: either missing)."""
+    if a is None or b is None or a.get("low") is None or b.get("high") is None:
+        return None
+    return a["low"] > b["high"]
 
 
-def _cells(cell, key: str) -> list[str]:
-    if cell is None:
-        return ["—"] * len(BANDS)
-    if "skipped" in cell:
-        return ["skipped"] + [""] * (len(BANDS) - 1)
-    return [_fmt(cell[key][band]) for band, _ in BANDS]
+def targets(results: dict) -> dict:
+    """The issue's target figures, measured: no fusion's AP@0.5; each fusion method against no
+    fusion (overall and 50–100 m, intervals apart); V2X-ViT against late fusion; generated /
+    oracle AP@0.5 per method; pre-training on ColWaymo against scratch at the smallest
+    fine-tuning set; robustness falling with noise and delay."""
+    t1, t3 = results["tables"].get("table1", {}), results["tables"].get("table3", {})
+    out: dict = {}
+    none = t1.get("none", {}).get("ego")
+    out["no_fusion_ap50"] = _value(none)
+    out["beats_no_fusion"] = {m: {b: _above(_value(row.get("oracle"), band=b), _value(none, band=b))
+                                  for b in ("overall", "50-100")}
+                              for m, row in t1.items() if m != "none"}
+    if "v2xvit" in t1 and "late" in t1:
+        v, late = _value(t1["v2xvit"].get("oracle")), _value(t1["late"].get("oracle"))
+        out["v2xvit_ge_late"] = None if v is None or late is None else v["value"] >= late["value"]
+    out["generated_over_oracle"] = {
+        m: round(row["generated"]["ap50"]["overall"]["value"] / row["oracle"]["ap50"]["overall"]["value"], 3)
+        for m, row in t1.items() if row.get("generated") and row.get("oracle")
+        and row["oracle"]["ap50"]["overall"] and row["oracle"]["ap50"]["overall"]["value"] > 0
+        and row["generated"]["ap50"]["overall"]}
+    sets = [k for k in results.get("finetune_sets", {}) if k not in ("0", "all")]
+    if sets:
+        first = sets[0]
+        out[f"colwaymo_beats_scratch_ft{first}"] = {
+            m: _above(_value(rows.get("colwaymo", {}).get(first)), _value(rows.get("scratch", {}).get(first)))
+            for m, rows in t3.items()}
+    rob = results["robustness"]
+    out["falls_with"] = {sweep: {m: (lambda v: None if None in v else v[-1] < v[0])(
+        [None if c["ap50"]["overall"] is None else c["ap50"]["overall"]["value"] for c in e[sweep]])
+        for m, e in rob["methods"].items() if m != "none"} for sweep in rob["levels"]}
+    return out
 
 
-TRAIN_DATA = {"ego": "ego's gt only", "oracle": "gt (oracle)", "generated": "TYP (generated)"}
-PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)"}
+def _row(label: str, name: str, cell: dict | None, *, note: str = "") -> str:
+    cells = [_iv(_value(cell, k, b)) for k, _ in KEYS for b, _ in BANDS] if cell else ["—"] * (len(KEYS) * len(BANDS))
+    return f"| {label} | {name}{note} | " + " | ".join(cells) + " |"
 
 
 def report_markdown(results: dict, cfg: FusionConfig) -> str:
+    d = cfg.detector
+    t = results["tables"]
+    by_band = ", ".join(f"{k} m: {v}" for k, v in results["test_gt_boxes_by_band"].items())
     lines = ["# Collaborative detection benchmark (stage `fusion`)", "",
-             f"PointPillars ({cfg.detector.voxel_size} m pillars over x {cfg.detector.lidar_range[0]:g}.."
-             f"{cfg.detector.lidar_range[3]:g} m, y {cfg.detector.lidar_range[1]:g}..{cfg.detector.lidar_range[4]:g} m) "
-             "with each fusion method; AP by range with OpenCOOD's conventions (BEV IoU, frame-order "
-             "ranking, VOC all-point AP); s = 0–30 m, m = 30–50 m, l = 50–100 m from the ego. "
-             f"Test: real_cav/{cfg.test_split}, {results['test_frames']} frames, {results['test_gt_boxes']} "
-             f"vehicles ({', '.join(f'{k} m: {v}' for k, v in results['test_gt_boxes_by_band'].items())}); "
-             f"training: real_cav/{cfg.train_split}, {results['train_frames']} frames; {results['runs']} runs, "
-             f"{cfg.steps} steps from scratch, {cfg.pretrain_steps} pre-training, {cfg.finetune_steps} fine-tuning; "
-             f"stage time {results['seconds_total']:.0f} s, {results['seconds_training']:.0f} s of it training.",
-             "", "## Oracle vs generated cooperating views (TYP Tables 1–2)", "",
-             "| Method | Train data | " + " | ".join(f"AP@0.{t} {s}" for t in (5, 7) for _, s in BANDS) + " |",
-             "|---|---|" + "---|" * (2 * len(BANDS))]
-    skipped = []
-    for method, row in results["table2"].items():
+             f"PointPillars ({d.voxel_size} m pillars over x {d.lidar_range[0]:g}..{d.lidar_range[3]:g} m, "
+             f"y {d.lidar_range[1]:g}..{d.lidar_range[4]:g} m) with each fusion method; AP by range with "
+             "OpenCOOD's conventions (BEV IoU, frame-order ranking, VOC all-point AP). "
+             f"Test: real_cav/{cfg.test_split}, {results['test_frames']} frames of {results['test_scenarios']} "
+             f"scenarios, {results['test_gt_boxes']} vehicles ({by_band}); training: real_cav/{cfg.train_split}, "
+             f"{results['train_frames']} frames of {results['train_scenarios']} scenarios. "
+             f"{results['runs']} runs × {results['seeds']} seeds = {results['trainings']} trainings: the "
+             f"single-agent detector {cfg.steps} steps ({cfg.pretrain_steps} pre-training), fusion methods "
+             + (f"{cfg.warm_start_steps} steps from it" if cfg.warm_start else "as many from scratch")
+             + f", fine-tuning {cfg.finetune_steps}; batch {cfg.batch_size}, {cfg.lr_schedule} learning rate, "
+             f"augmentation (flip {cfg.augment.flip}, ±{cfg.augment.rotation_deg:g}°, scale "
+             f"{cfg.augment.scale[0]:g}–{cfg.augment.scale[1]:g}). Stage time {results['seconds_total']:.0f} s, "
+             f"{results['seconds_training']:.0f} s of it training.", "",
+             f"Every cell: mean over {results['seeds']} training seeds [95 % bootstrap interval over test scenarios "
+             "and seeds]. \"A beats B\" only where the intervals do not overlap.", "",
+             "## Oracle vs generated cooperating views (TYP Tables 1–2)", "",
+             "| Method | Train data | " + " | ".join(f"{k} {b}" for _, k in KEYS for _, b in BANDS) + " |",
+             "|---|---|" + "---|" * (len(KEYS) * len(BANDS))]
+    for method, row in t.get("table1", {}).items():
         for i, (data, cell) in enumerate(row.items()):
-            if cell and "skipped" in cell:
-                skipped.append(f"{METHOD_NAMES[method]} / {TRAIN_DATA[data]}: {cell['skipped']}")
-            lines.append(f"| {METHOD_NAMES[method] if i == 0 else ''} | {TRAIN_DATA[data]} | "
-                         + " | ".join(_cells(cell, "ap50") + _cells(cell, "ap70")) + " |")
+            lines.append(_row(METHODS[method].display if i == 0 else "", TABLE1_ROWS[data], cell))
     sets = results["finetune_sets"]
-    for key, title in (("ap50", "AP@0.5"), ("ap70", "AP@0.7")):
+    for key, title in KEYS:
         lines += ["", f"## Pre-training and fine-tuning on real_cav (TYP Table 3), {title}", "",
-                  "| Method | Pre-train | " + " | ".join(f"FT {n} sc. {s}" for n in sets.values() for _, s in BANDS)
-                  + " |", "|---|---|" + "---|" * (len(sets) * len(BANDS))]
-        for method, rows in results["table3"].items():
-            for i, (source, row) in enumerate(sorted(rows.items(), key=lambda kv: list(PRETRAIN).index(kv[0]))):
-                label = "ego's gt only" if method == "none" else PRETRAIN[source]
-                cells = _cells(row, key) + [""] * (len(BANDS) * (len(sets) - 1)) if "skipped" in row else \
-                    [c for ft in sets for c in _cells(row[ft], key)]
-                if "skipped" in row and key == "ap50":
-                    skipped.append(f"{METHOD_NAMES[method]} / pre-train {PRETRAIN[source]}: {row['skipped']}")
-                lines.append(f"| {METHOD_NAMES[method] if i == 0 else ''} | {label} | " + " | ".join(cells) + " |")
+                  "| Method | Pre-train | " + " | ".join(f"FT {n} sc. {b}" for n in sets.values()
+                                                        for _, b in (BANDS[0], BANDS[3])) + " |",
+                  "|---|---|" + "---|" * (2 * len(sets))]
+        for method, rows in t.get("table3", {}).items():
+            ordered = sorted(rows.items(), key=lambda kv: list(PRETRAIN).index(kv[0]))
+            for i, (source, cols) in enumerate(ordered):
+                cells = [_iv(_value(cols.get(ft), key, b)) for ft in sets for b in ("overall", "50-100")]
+                lines.append(f"| {METHODS[method].display if i == 0 else ''} | {PRETRAIN[source]} | "
+                             + " | ".join(cells) + " |")
+    lines += ["", "## Targets (issue 14), measured", ""] + [f"- {k}: {v}" for k, v in targets(results).items()]
     rob = results["robustness"]
-    lines += ["", "## Robustness (V2VSSC §IV), AP@0.5 overall / 50–100 m, oracle models", ""]
-    names = {"position_std": "position noise σ (m)", "heading_std_deg": "heading noise σ (°)", "delay_ms": "delay (ms)"}
+    lines += ["", "## Robustness (V2VSSC §IV), AP@0.5 overall / 50–100 m, oracle networks", "",
+              f"Delays are scored on the {rob['delay_frames_scored']} test frames with t ≥ the largest delay; "
+              f"delay applied (mean message age): {', '.join(f'{v:g} ms' for v in rob['applied_delay_ms'])}.", ""]
+    names = {"position_std": "position σ (m)", "heading_std_deg": "heading σ (°)", "delay_ms": "delay (ms)"}
     for sweep, levels in rob["levels"].items():
-        lines += [f"| Method | " + " | ".join(f"{names[sweep].split(' (')[0]} {v:g}" for v in levels) + " |",
+        lines += ["| Method | " + " | ".join(f"{names[sweep]} {v:g}" for v in levels) + " |",
                   "|---|" + "---|" * len(levels)]
         for method, entry in rob["methods"].items():
-            lines.append(f"| {METHOD_NAMES[method]} | " + " | ".join(
-                f"{_fmt(c['ap50']['overall'])} / {_fmt(c['ap50']['50-100'])}" for c in entry[sweep]) + " |")
+            lines.append(f"| {METHODS[method].display} | " + " | ".join(
+                f"{_iv(c['ap50']['overall'])} / {_iv(c['ap50']['50-100'])}" for c in entry[sweep]) + " |")
         lines.append("")
     lines += ["| Method | message | bytes per message | AP@0.5 overall / 50–100 m |", "|---|---|---|---|"]
     for method, entry in rob["methods"].items():
-        kinds = {"none": "nothing", "early": "points", "late": "boxes"}
-        if method in kinds:
-            lines.append(f"| {METHOD_NAMES[method]} | {kinds[method]} | {entry['bytes_per_message']:,.0f} | "
-                         f"{_fmt(entry['position_std'][0]['ap50']['overall'])} / "
-                         f"{_fmt(entry['position_std'][0]['ap50']['50-100'])} |")
+        kind = METHODS[method].message
+        if "quantization" not in entry:
+            c = entry["position_std"][0]["ap50"]
+            lines.append(f"| {METHODS[method].display} | {kind} | {entry['bytes_per_message']:,.0f} | "
+                         f"{_iv(c['overall'])} / {_iv(c['50-100'])} |")
         for q in entry.get("quantization", []):
-            lines.append(f"| {METHOD_NAMES[method]} | features, {q['bits']} bit | {q['bytes_per_message']:,.0f} | "
-                         f"{_fmt(q['ap50']['overall'])} / {_fmt(q['ap50']['50-100'])} |")
-    if skipped:
-        lines += ["", "## Skipped", ""] + [f"- {s}" for s in skipped]
+            lines.append(f"| {METHODS[method].display} | features, {q['bits']} bit | {q['bytes_per_message']:,.0f} | "
+                         f"{_iv(q['ap50']['overall'])} / {_iv(q['ap50']['50-100'])} |")
+    if results.get("skipped"):
+        lines += ["", "## Skipped", ""] + [f"- {k}: {v}" for k, v in results["skipped"].items()]
     lines += ["", "Plots: [PR curves](fusion_pr.png), [robustness](fusion_robustness.png). "
-              "All numbers: `metrics/fusion.json`, `artifacts/fusion/results.json`.", ""]
+              "All numbers: `metrics/fusion.json`, `artifacts/fusion/results.json`; training curves: "
+              "`artifacts/fusion/curves.json`.", ""]
     return "\n".join(lines)
 
 
@@ -136,41 +190,50 @@ def write_report(results: dict, cfg: FusionConfig, folder: Path) -> list[Path]:
     colors = {m: f"C{i}" for i, m in enumerate(METHODS)}
 
     fig, ax = plt.subplots(figsize=(6, 4.5))
-    for method, row in results["table2"].items():
+    for method, row in results["tables"].get("table1", {}).items():
         for data, cell in row.items():
             if cell and "pr" in cell:
                 ax.plot(cell["pr"]["recall"], cell["pr"]["precision"], color=colors[method],
                         linestyle="--" if data == "generated" else "-",
-                        label=f"{METHOD_NAMES[method]}, {TRAIN_DATA[data]} (AP {_fmt(cell['ap50']['overall'])})")
+                        label=f"{METHODS[method].display}, {TABLE1_ROWS[data]} "
+                              f"(AP {_iv(_value(cell))})")
     ax.set(xlabel="recall", ylabel="precision (interpolated)", xlim=(0, 1), ylim=(0, 1.02),
-           title="PR curves on real_cav/test, AP@0.5, all ranges")
-    ax.legend(fontsize=7, loc="upper right")
+           title="PR curves on real_cav/test, AP@0.5, all ranges (first seed)")
+    ax.legend(fontsize=6, loc="upper right")
     _savefig(fig, pr_png)
     plt.close(fig)
 
     rob = results["robustness"]
     fig, axes = plt.subplots(1, 4, figsize=(17, 4))
     labels = {"position_std": "position noise σ (m)", "heading_std_deg": "heading noise σ (°)",
-              "delay_ms": "time delay (ms)"}
+              "delay_ms": "time delay applied (ms)"}
+
+    def ys(cells, band="overall"):
+        vals = [c["ap50"][band] or {"value": 0.0, "low": 0.0, "high": 0.0} for c in cells]
+        return ([v["value"] for v in vals], [v["low"] if v["low"] is not None else v["value"] for v in vals],
+                [v["high"] if v["high"] is not None else v["value"] for v in vals])
+
     for ax, (sweep, levels) in zip(axes, rob["levels"].items()):
+        xs = rob["applied_delay_ms"] if sweep == "delay_ms" else levels
         for method, entry in rob["methods"].items():
-            ax.plot(levels, [c["ap50"]["overall"] or 0.0 for c in entry[sweep]], "o-", color=colors[method],
-                    label=f"{METHOD_NAMES[method]} all")
-            ax.plot(levels, [c["ap50"]["50-100"] or 0.0 for c in entry[sweep]], "x:", color=colors[method],
-                    label=f"{METHOD_NAMES[method]} 50–100 m")
+            y, lo, hi = ys(entry[sweep])
+            ax.plot(xs, y, "o-", color=colors[method], label=f"{METHODS[method].display} all")
+            ax.fill_between(xs, lo, hi, color=colors[method], alpha=0.12)
+            ax.plot(xs, ys(entry[sweep], "50-100")[0], "x:", color=colors[method],
+                    label=f"{METHODS[method].display} 50–100 m")
         ax.set(xlabel=labels[sweep], ylabel="AP@0.5", title=f"AP vs {labels[sweep].split(' (')[0]}")
     ax = axes[3]
     for method, entry in rob["methods"].items():
         if "quantization" in entry:
             q = entry["quantization"]
-            ax.plot([c["bytes_per_message"] for c in q], [c["ap50"]["overall"] or 0.0 for c in q], "o-",
-                    color=colors[method], label=f"{METHOD_NAMES[method]} ({'/'.join(str(c['bits']) for c in q)} bit)")
-        elif method != "none":
-            ax.plot([entry["bytes_per_message"]], [entry["position_std"][0]["ap50"]["overall"] or 0.0], "s",
-                    color=colors[method], label=METHOD_NAMES[method])
+            ax.plot([c["bytes_per_message"] for c in q], ys(q)[0], "o-", color=colors[method],
+                    label=f"{METHODS[method].display} ({'/'.join(str(c['bits']) for c in q)} bit)")
+        elif METHODS[method].message != "nothing":
+            ax.plot([entry["bytes_per_message"]], ys(entry["position_std"][:1])[0], "s", color=colors[method],
+                    label=METHODS[method].display)
     if "none" in rob["methods"]:
-        ax.axhline(rob["methods"]["none"]["position_std"][0]["ap50"]["overall"] or 0.0, color=colors["none"],
-                   linestyle="--", label="No Fusion")
+        ax.axhline(ys(rob["methods"]["none"]["position_std"][:1])[0][0], color=colors["none"], linestyle="--",
+                   label="No Fusion")
     ax.set(xscale="log", xlabel="bytes per message (cooperating agent, frame)", ylabel="AP@0.5",
            title="AP vs message size (compression)")
     axes[0].legend(fontsize=6, ncol=2)

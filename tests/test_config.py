@@ -79,7 +79,7 @@ def test_flatten_gives_dotted_names():
 
 
 def test_every_profile_loads_and_has_the_same_keys():
-    from typ.config import as_dict, profile_defaults
+    from typ.config import as_dict
 
     profiles = yaml.safe_load(open("typ/profiles.yaml"))
     assert set(profiles) == {"tiny", "small", "paper"} and profiles["small"]["extends"] == "tiny"
@@ -104,3 +104,14 @@ def test_per_domain_lengths_are_replaced_whole_by_params():
     assert flat.domains == {} and flat.for_domain("target") == flat.for_domain("source") == (5, 2, 2)
     one = config_from_dict({"simulate": {"domains": {"source": {"frames": 3, "agents_min": 2, "agents_max": 2}}}})
     assert set(one.simulate.domains) == {"source"}              # not merged with the profile's target entry
+    # a profile that extends another refines its per-domain lengths instead
+    small = config_from_dict({"profile": "small"}).simulate
+    assert set(small.domains) == {"source", "target", "real_cav"} and small.for_domain("target") == (2, 3, 3)
+
+
+def test_small_profile_is_tiny_with_a_bigger_fusion_benchmark():
+    tiny, small = config_from_dict({"profile": "tiny"}), config_from_dict({"profile": "small"})
+    assert small.fusion.detector == tiny.fusion.detector and small.stage1.unet == tiny.stage1.unet
+    assert small.fusion.seeds == 3 and small.fusion.steps > tiny.fusion.steps
+    assert small.simulate.for_domain("real_cav")[0] > tiny.simulate.for_domain("real_cav")[0]
+    assert small.simulate.scenarios["real_cav"]["train"] > tiny.simulate.scenarios["real_cav"]["train"]

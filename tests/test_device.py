@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from tasks import adapt, fusion, pipeline, stage1, stage2, vqvae
+from tasks import adapt, fusion_train, pipeline, stage1, stage2, vqvae
+from tasks.fusion_batch import Inputs
 from tasks.voxel_data import ViewSet
 from typ import distributed
 from typ.config import config_from_dict
@@ -161,14 +162,14 @@ def fusion_inputs(tmp_path_factory):
                    "window_dim_heads": [8], "mlp_dim": 8},
         "batch_size": 2}}).fusion
     data = FusionDataset(root, lidar_range=cfg.detector.lidar_range, comm_range=cfg.comm_range, seed=cfg.seed)
-    return cfg, fusion.Inputs(list(data), cfg)
+    return cfg, Inputs(list(data), cfg)
 
 
 @pytest.mark.parametrize("method", ["early"])
 def test_fusion_step_runs_on_the_runtime_device(meta_runtime, monkeypatch, tmp_path, fusion_inputs, method):
     cfg, inputs = fusion_inputs
-    values = _ran_on_meta(lambda: fusion.train(method, cfg, inputs, steps=1, out=tmp_path, name=method),
-                          fusion, monkeypatch)
+    values = _ran_on_meta(lambda: fusion_train.train(method, cfg, inputs, steps=1, out=tmp_path, name=method),
+                          fusion_train, monkeypatch)
     assert {"cls_loss", "reg_loss"} <= set(values)
 
 

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from models.box_coder import AnchorBoxCoder
-from models.fusion import (AttFuse, EarlyFusion, HeteroAgentAttention, LateFusion, NoFusion, V2XViT,
-                           merge_agent_points, transform_boxes)
+from models.fusion import (METHODS, AttFuse, EarlyFusion, HeteroAgentAttention, LateFusion, NoFusion, V2XViT, build,
+                           compressed, merge_agent_points, method_of, quantize, transform_boxes)
 from models.pointpillars import PointPillars, pillarize
 from models.warp import communication_mask, warp_bev
 from typ.geometry import pose_to_matrix, relative_transform, transform_boxes as np_transform_boxes, transform_points
@@ -240,7 +240,8 @@ def test_early_fusion_merges_points_in_the_ego_frame():
                                atol=1e-5)
     np.testing.assert_array_equal(merged[:len(clouds[0])], clouds[0])
     det = _detector()
-    out = EarlyFusion(detector=det)(det.pillarize([merged, merged]), batch_size=2)
+    out = EarlyFusion(detector=det)(det.pillarize([merged, merged]), agent_mask=torch.ones(2, 1, dtype=torch.bool),
+                                    transforms=np.eye(4)[None, None].repeat(2, 0))
     assert out["psm"].shape == (2, 2, det.ny // 2, det.nx // 2)
 
 
@@ -264,3 +265,72 @@ def test_late_fusion_moves_each_agents_boxes_into_the_ego_frame():
     turned = transform_boxes(torch.tensor([[1.0, 0, 0, 4, 2, 1.5, 3.0]]), torch.from_numpy(pose_to_matrix(
         [0, 0, 0, 0, 90, 0])))
     assert turned[0, 6].item() == pytest.approx(3.0 + math.pi / 2 - 2 * math.pi)
+
+
+# ------------------------------------------------------------------ registry
+
+
+def test_every_registered_method_builds_and_runs_with_one_signature():
+    clouds = _clouds()
+    for name, m in METHODS.items():
+        det = _detector()
+        options = {"dim": 16, "depth": 1, "heads": 2, "dim_head": 8, "window_sizes": (2, 4), "window_heads": (2, 2),
+                   "window_dim_heads": (8, 8), "mlp_dim": 16, "dropout": 0.0} if m.options else None
+        module = build(name, det, options).eval()
+        assert method_of(module) == name and isinstance(module, m.module)
+        if m.inputs == "merged":
+            merged = [merge_agent_points(clouds[b * L:(b + 1) * L], _transforms()[b], MASK[b].numpy()) for b in range(B)]
+            out = module(det.pillarize(merged), agent_mask=torch.ones(B, 1, dtype=torch.bool),
+                         transforms=np.eye(4)[None, None].repeat(B, 0))
+        else:
+            out = _run(module, clouds)
+        rows = int(MASK.sum()) if m.targets == "own" and m.inputs == "agents" else B
+        assert out["psm"].shape[0] == rows, name
+
+
+def test_no_and_late_fusion_are_one_network():
+    det = _detector()
+    none, late = NoFusion(detector=det), LateFusion(detector=det)
+    assert none.state_dict().keys() == late.state_dict().keys()
+    assert METHODS["none"].network == METHODS["late"].network == "late"
+
+
+@pytest.mark.parametrize("name", ["attfuse", "v2xvit"])
+def test_compressed_messages_change_only_with_few_bits_and_shrink_the_message(name):
+    module = INTERMEDIATE[name](_detector()).eval()
+    with torch.no_grad():
+        exact = _run(module, _clouds())["psm"]
+        with compressed(module, 16):
+            fine = _run(module, _clouds())["psm"]
+            fine_bytes = module.message_bytes(points=0, boxes=0)
+        with compressed(module, 2):
+            coarse = _run(module, _clouds())["psm"]
+            coarse_bytes = module.message_bytes(points=0, boxes=0)
+        ego_only = _run(module, _clouds(), mask=torch.tensor([[True, False, False]] * B))["psm"]
+        with compressed(module, 2):
+            ego_only_2 = _run(module, _clouds(), mask=torch.tensor([[True, False, False]] * B))["psm"]
+    assert module.message_bits is None
+    d_fine, d_coarse = (exact - fine).abs().max(), (exact - coarse).abs().max()
+    assert d_fine < d_coarse / 10 and d_coarse > 0
+    assert torch.equal(ego_only, ego_only_2)                          # the ego's own features are never quantised
+    full = module.message_bytes(points=0, boxes=0)
+    assert full > fine_bytes > coarse_bytes > 0 and full / coarse_bytes > 10
+
+
+def test_messages_of_points_and_boxes_and_nothing():
+    det = _detector()
+    assert NoFusion(detector=det).message_bytes(points=1000, boxes=5) == 0
+    assert EarlyFusion(detector=det).message_bytes(points=1000, boxes=5) == 16_000
+    assert LateFusion(detector=det).message_bytes(points=1000, boxes=5) == 160
+    with pytest.raises(Exception, match="features"):
+        with compressed(LateFusion(detector=det), 8):
+            pass
+
+
+def test_quantization_is_exact_at_high_bit_widths_and_coarse_at_low():
+    x = torch.randn(2, 3, 5, 6)
+    fine = quantize(x, 16, (2, 3))
+    assert (fine - x).abs().max() <= (x.amax((2, 3)) - x.amin((2, 3))).max() / (2 ** 16 - 1)
+    coarse = quantize(x, 2, (2, 3))
+    assert all(len(torch.unique(coarse[b, c])) <= 4 for b in range(2) for c in range(3))
+    assert torch.allclose(coarse.amin((2, 3)), x.amin((2, 3))) and torch.allclose(coarse.amax((2, 3)), x.amax((2, 3)))

@@ -140,7 +140,8 @@ def test_points_on_the_own_car_are_dropped(root):
 
 def test_delay_takes_cooperating_agents_from_earlier_frames(root):
     ds = FusionDataset(root, lidar_range=RANGE, delay_frames=1)
-    s = ds[2]
+    assert [x.timestamp for x in ds] == ["000001", "000002"]
+    s = ds[1]
     _same_cloud(s.clouds[0], mask_ego_points(_cloud(EGO, 2)))                          # the ego is never late
     _same_cloud(s.clouds[1], mask_ego_points(_cloud(NEAR, 1)))
     assert s.time_delay.tolist() == [0, 1]
@@ -151,8 +152,35 @@ def test_delay_takes_cooperating_agents_from_earlier_frames(root):
     np.testing.assert_allclose(s.agent_boxes[1], transform_boxes(
         invert(pose_to_matrix(_poses(1)[NEAR])), np.array([WORLD[i] for i in (7, 8, 100)]) + [1, 0, 0, 0, 0, 0, 0]),
         atol=1e-9)                                                                   # own labels: the sent frame
-    first = FusionDataset(root, lidar_range=RANGE, delay_frames=5)
-    assert first[0].time_delay.tolist() == [0, 0] and first[2].time_delay.tolist() == [0, 2]   # clamped at frame 0
+
+
+def test_delay_is_never_clamped_at_the_sequence_start(root):
+    """Defect 3: OpenCOOD clamps at frame 0, so on 3-frame scenes "200 ms" averaged 100 ms. Only
+    frames t >= delay are samples, and every message is exactly that old."""
+    ds = FusionDataset(root, lidar_range=RANGE, delay_frames=2)
+    assert [s.timestamp for s in ds] == ["000002"]
+    assert ds[0].time_delay.tolist() == [0, 2]
+    _same_cloud(ds[0].clouds[1], mask_ego_points(_cloud(NEAR, 0)))
+    # several delays scored on the same frames
+    same = [FusionDataset(root, lidar_range=RANGE, delay_frames=d, first_frame=2) for d in (0, 1, 2)]
+    assert [[s.timestamp for s in d] for d in same] == [["000002"]] * 3
+    assert [d[0].time_delay.tolist() for d in same] == [[0, 0], [0, 1], [0, 2]]
+    assert [s.timestamp for s in ds.with_options(delay_frames=1)] == ["000001", "000002"]
+    with pytest.raises(TypError) as err:
+        FusionDataset(root, lidar_range=RANGE, delay_frames=3)               # no frame is that late
+    assert err.value.field == "delay_frames"
+
+
+def test_cooperating_labels_are_cut_to_the_generated_extent(root, tmp_path):
+    """Generated clouds cover +-extent around their agent: labels beyond it are not learned from.
+    NEAR (at x = 30 + t) labels car 8 (45 m, 13 m from it) and car 10 (95 m, 65 m from it)."""
+    full = FusionDataset(root, lidar_range=(-100.0, -30.0, -3.0, 100.0, 30.0, 1.0))
+    cut = full.with_options(cav_extent=40.0)
+    a, b = full[0], cut[0]
+    assert 10 in a.gt_ids and 10 not in b.gt_ids and 8 in b.gt_ids
+    assert len(b.agent_boxes[1]) == len(a.agent_boxes[1]) - 1
+    np.testing.assert_array_equal(a.agent_boxes[0], b.agent_boxes[0])            # the ego's are whole
+    assert set(a.gt_ids) - set(b.gt_ids) == {10}
 
 
 def test_pose_noise_has_the_asked_spread_and_spares_the_ego(root):
@@ -211,6 +239,9 @@ def test_cav_root_replaces_the_cooperating_clouds_only(root, tmp_path):
     ({"position_std": -0.1}, "position_std"),
     ({"heading_std_deg": float("nan")}, "heading_std_deg"),
     ({"max_scenarios": 0}, "max_scenarios"),
+    ({"first_frame": -1}, "first_frame"),
+    ({"cav_extent": 0.0}, "cav_extent"),
+    ({"min_points": -1}, "min_points"),
     ({"cav_root": "/nonexistent/typ"}, "cav_root"),
 ])
 def test_bad_arguments_raise_typerror(root, kwargs, field):
@@ -234,3 +265,27 @@ def test_bad_folders_raise_typerror(root, tmp_path):
     assert err.value.field == "lidar_pose" and "000001.yaml" in err.value.where
     with pytest.raises(IndexError):
         ds[3]
+
+
+def test_labels_need_points_of_the_true_clouds(tmp_path):
+    """min_points: a vehicle is ground truth when the agents' true clouds put that many points in
+    its box (the ego: 5 points in car 7; NEAR: 3 in car 8; nobody sees the others)."""
+    def clouds(agent, frame):
+        pts = _cloud(agent, frame)
+        pts = pts[(np.abs(pts[:, 0]) > 1) | (np.abs(pts[:, 1]) > 1)][:5]           # a few far points
+        pose = pose_to_matrix(_poses(frame)[agent])
+        car = {EGO: 7, NEAR: 8}.get(agent)
+        if car is None:
+            return pts
+        centre = np.array(WORLD[car][:3]) + [frame, 0, 0]
+        local = transform_points(invert(pose), np.tile(centre, (5 if agent == EGO else 3, 1)))
+        return np.concatenate([pts, np.c_[local[:, :3] + 0.1, np.zeros(len(local))]]).astype(np.float32)
+
+    _write(tmp_path, clouds=clouds)
+    every = FusionDataset(tmp_path, lidar_range=RANGE)
+    seen = every.with_options(min_points=1)
+    for a, b in zip(every, seen):
+        assert set(b.gt_ids) == {7, 8} < set(a.gt_ids)
+        assert len(b.agent_boxes[0]) == 1 and len(b.agent_boxes[1]) == 1            # ego: car 7; NEAR: car 8
+    many = every.with_options(min_points=4)
+    assert set(many[0].gt_ids) == {7} and len(many[0].agent_boxes[1]) == 0

@@ -1,4 +1,4 @@
-"""Stage ``fusion`` end to end on a few small simulated scenarios (tasks/fusion.py)."""
+"""Stage ``fusion`` end to end on a few small simulated scenarios (tasks/fusion.py and friends)."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,50 +8,52 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from torch import nn
 
+from models.fusion import METHODS, FusionModule, LateFusion
 from tasks import fusion as F
 from tasks import fusion_report as R
-from tasks.fusion_data import FusionDataset
-from tasks.training import checkpoints
-from typ.boxes_bev import rotated_iou_bev
+from tasks.fusion_batch import Inputs
+from tasks.fusion_score import Scorer, fill_tables
+from tasks.fusion_train import Trained, box_coder, build_model
 from typ.config import config_from_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios, read_scene, write_scene
-from typ.geometry import invert, points_in_boxes, transform_points
 from typ.sim import simulate_scenario
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-SMALL = {"methods": ["none", "early", "late", "attfuse", "v2xvit"],
-         "detector": {"lidar_range": [-51.2, -25.6, -3.0, 51.2, 25.6, 1.0], "voxel_size": 0.8,
-                      "max_points_per_pillar": 8, "max_pillars": 4000, "pillar_channels": 8,
+SMALL = {"methods": list(METHODS),
+         "detector": {"lidar_range": [-76.8, -25.6, -3.0, 76.8, 25.6, 1.0], "voxel_size": 0.8,
+                      "max_points_per_pillar": 8, "max_pillars": 6000, "pillar_channels": 8,
                       "num_filters": [8, 16], "num_upsample_filters": [8, 8]},
          "v2xvit": {"dim": 8, "heads": 1, "dim_head": 8, "window_sizes": [4], "window_heads": [1],
                     "window_dim_heads": [8], "mlp_dim": 8},
          "robustness": {"position_std": [0.0, 0.4], "heading_std_deg": [0.0, 0.8], "delay_ms": [0, 100],
                         "quantization_bits": [8, 2]},
          "steps": 2, "pretrain_steps": 2, "finetune_steps": 1, "warm_start_steps": 1, "checkpoint_every": 1,
-         "finetune_scenes": [1]}
+         "finetune_scenes": [1], "seeds": 2, "bootstrap": 50}
+BAND_NAMES = ("overall", "0-30", "30-50", "50-100")
 
 
-def _simulate(folder, domain: str, seed: int, agents: int, azimuth: float = 1.5) -> None:
-    for scene in simulate_scenario(domain=domain, seed=seed, n_frames=2, n_agents=agents, azimuth_step_deg=azimuth,
-                                   scenario=f"{domain}_{seed:04d}"):
+def _simulate(folder, domain: str, seed: int, agents: int, azimuth: float = 1.5, frames: int = 3) -> None:
+    for scene in simulate_scenario(domain=domain, seed=seed, n_frames=frames, n_agents=agents,
+                                   azimuth_step_deg=azimuth, scenario=f"{domain}_{seed:04d}"):
         write_scene(scene, folder)
 
 
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
-    """data/sim with real_cav train (2 scenarios) / test (1), source train (1); data/generated with
-    real_cav/train (cooperating clouds jittered: a stand-in for TYP's) and target/pretrain (ColWaymo)."""
+    """data/sim with real_cav train (2 scenarios) / test (2), source train (1); data/generated with
+    real_cav/train (cooperating clouds thinned and jittered: a stand-in for TYP's) and
+    target/pretrain (ColWaymo)."""
     root = tmp_path_factory.mktemp("fusion")
     sim, gen = root / "data" / "sim", root / "data" / "generated"
     for seed in (1, 2):
-        _simulate(sim / "real_cav" / "train", "real_cav", seed, 3)
-    _simulate(sim / "real_cav" / "test", "real_cav", 3, 3)
-    _simulate(sim / "source" / "train", "source", 4, 2, azimuth=3.0)
-    _simulate(gen / "target" / "pretrain", "target", 5, 2, azimuth=3.0)
+        _simulate(sim / "real_cav" / "train", "real_cav", seed, 3, frames=2)
+    for seed in (3, 6):
+        _simulate(sim / "real_cav" / "test", "real_cav", seed, 3)
+    _simulate(sim / "source" / "train", "source", 4, 2, azimuth=3.0, frames=2)
+    _simulate(gen / "target" / "pretrain", "target", 5, 2, azimuth=3.0, frames=2)
     rng = np.random.default_rng(0)
     for folder in list_scenarios(sim / "real_cav" / "train"):
         for ts in ("000000", "000001"):
@@ -67,174 +69,195 @@ def project(tmp_path_factory):
     return root, cfg
 
 
-def _bench(project):
+@pytest.fixture(scope="module")
+def stage(project):
+    """The stage's work as the flow does it: every run trained for both seeds, every table scored."""
     root, cfg = project
-    return F.Benchmark(cfg, F.Roots.from_config(cfg, root), root / "artifacts" / "fusion")
+    bench = F.Benchmark(cfg, F.Roots.from_config(cfg, root), root / "artifacts" / "fusion")
+    bench.train_all()
+    return bench, bench.score()
 
 
-def _valid(cell) -> bool:
-    return set(cell) >= {"ap50", "ap70"} and all(
-        set(cell[k]) == {"overall", "0-30", "30-50", "50-100"} and
-        all(v is None or 0.0 <= v <= 1.0 for v in cell[k].values()) for k in ("ap50", "ap70"))
+def _numbers(cell) -> bool:
+    """Every band of AP@0.5 and AP@0.7 a number in [0, 1] inside its interval."""
+    return all(cell[k][b] is not None and 0.0 <= cell[k][b]["low"] <= cell[k][b]["value"] <= cell[k][b]["high"] <= 1.0
+               for k in ("ap50", "ap70") for b in BAND_NAMES)
 
 
-def test_every_table_and_report_on_tiny_data(project):
+def test_the_test_split_has_vehicles_in_every_band(stage):
+    _, results = stage
+    assert results["test_scenarios"] == 2 and results["test_frames"] == 6
+    assert all(n > 0 for n in results["test_gt_boxes_by_band"].values()), results["test_gt_boxes_by_band"]
+
+
+def test_every_oracle_and_generated_cell_holds_a_number(stage, project):
     root, cfg = project
-    bench = _bench(project)
-    table2 = F.oracle_vs_generated(bench)
-    assert set(table2) == set(cfg.methods)
-    assert set(table2["none"]) == {"ego"} and all(set(table2[m]) == {"oracle", "generated"} for m in F.METHODS[1:])
-    assert all(_valid(c) and len(c["pr"]["recall"]) == len(c["pr"]["precision"])
-               for row in table2.values() for c in row.values())
-    table3 = F.pretrain_finetune(bench)
-    assert set(table3["none"]) == {"scratch"} and table3["none"]["scratch"]["0"] is None
-    for method in F.METHODS[1:]:
-        assert set(table3[method]) == {"scratch", "colwaymo", "source"}
-        assert all(set(row) == {"0", "1", "all"} for row in table3[method].values())
-        assert _valid(table3[method]["source"]["0"]) and _valid(table3[method]["colwaymo"]["1"])
-    # scratch on all scenes is the oracle run itself, not a second training
-    assert table3["late"]["scratch"]["all"] == {k: table2["late"]["oracle"][k] for k in ("ap50", "ap70")}
-    assert "finetune1-source-v2xvit" in bench.models and "scratchall-late" not in bench.models
-    # warm start: AttFuse began from the late-fusion detector of the same data, then trained on
-    assert bench.models["oracle-attfuse"].steps == cfg.warm_start_steps and bench.models["oracle-late"].steps == 2
-    curves = F.robustness(bench)
-    for method, entry in curves["methods"].items():
-        assert all(len(entry[s]) == 2 and all(_valid(c) for c in entry[s]) for s in curves["levels"])
-    quant = curves["methods"]["attfuse"]["quantization"]
+    bench, results = stage
+    t1 = results["tables"]["table1"]
+    assert list(t1) == list(METHODS)
+    assert set(t1["none"]) == {"ego"} and all(set(t1[m]) == {"oracle", "generated"} for m in list(METHODS)[1:])
+    for method, row in t1.items():
+        for data, cell in row.items():
+            assert _numbers(cell), (method, data, cell)
+            assert len(cell["per_seed"]) == 2 and len(cell["pr"]["recall"]) == len(cell["pr"]["precision"])
+    t3 = results["tables"]["table3"]
+    for method in METHODS:
+        assert set(t3[method]) == {"scratch", "colwaymo", "source"}
+        assert set(t3[method]["scratch"]) == {"1", "all"}
+        assert set(t3[method]["colwaymo"]) == set(t3[method]["source"]) == {"0", "1", "all"}
+        assert all(_numbers(c) for cols in t3[method].values() for c in cols.values())
+    # scratch on all scenes is the oracle run itself; no and late fusion one network
+    assert t3["late"]["scratch"]["all"]["ap50"] == t1["late"]["oracle"]["ap50"]
+    assert "scratchall-late" not in bench.plan.runs and "oracle-none" not in bench.plan.runs
+    # one pre-training per (source, network) serves every fine-tuning size
+    pre = [r for r in bench.plan.runs.values() if r.name.startswith("pretrain-colwaymo")]
+    assert sorted(r.method for r in pre) == sorted(["late", "early", "attfuse", "v2xvit"])
+    assert {r.init for r in bench.plan.runs.values() if r.name.startswith("finetune")} == \
+        {r.name for r in bench.plan.runs.values() if r.name.startswith("pretrain")}
+    # warm start: AttFuse began from the single-agent detector of the same data, then trained on
+    assert bench.plan.runs["oracle-attfuse"].warm == "oracle-late"
+    assert [t.steps for t in bench.networks["oracle-attfuse"]] == [cfg.warm_start_steps] * 2
+    assert [t.seed for t in bench.networks["oracle-late"]] == [0, 1]
+    for run in bench.plan.runs:
+        for seed in (0, 1):
+            assert (bench.model_folder(run, seed) / "model.safetensors").is_file()
+    saved = [p for p in (root / "artifacts" / "fusion" / "models").rglob("*") if p.is_file()]
+    assert {p.name for p in saved} == {"model.safetensors", "config.json"}           # never a pickle
+
+
+def test_robustness_is_scored_on_the_same_frames_with_the_delay_applied(stage):
+    _, results = stage
+    rob = results["robustness"]
+    assert rob["applied_delay_ms"] == [0.0, 100.0]
+    assert rob["delay_frames_scored"] == 4                      # frames 1, 2 of both test scenarios
+    for method, entry in rob["methods"].items():
+        for sweep in rob["levels"]:
+            assert len(entry[sweep]) == 2 and all(c["ap50"]["overall"] is not None for c in entry[sweep])
+    quant = rob["methods"]["attfuse"]["quantization"]
     assert [q["bits"] for q in quant] == [32, 8, 2]
     assert quant[0]["bytes_per_message"] > quant[1]["bytes_per_message"] > quant[2]["bytes_per_message"] > 0
-    assert curves["methods"]["none"]["bytes_per_message"] == 0
-    assert curves["methods"]["early"]["bytes_per_message"] > curves["methods"]["attfuse"]["bytes_per_message"] / 100
+    assert rob["methods"]["none"]["bytes_per_message"] == 0
+    assert rob["methods"]["early"]["bytes_per_message"] > rob["methods"]["attfuse"]["bytes_per_message"] / 100
 
-    results = {**F.summarize(bench, table2, table3, curves), "seconds_total": 1.0, "seconds_training": 0.5}
+
+def test_report_and_metrics(stage, project):
+    root, cfg = project
+    bench, results = stage
+    results = {**results, "seconds_total": 1.0, "seconds_training": 0.5}
     paths = R.write_report(results, cfg, root / "reports")
     assert [p.name for p in paths] == ["fusion.md", "fusion_pr.png", "fusion_robustness.png"]
     assert all(p.stat().st_size > 0 for p in paths)
     text = paths[0].read_text()
-    assert "TYP Tables 1–2" in text and "TYP Table 3" in text and "V2X-ViT" in text and "skipped" not in text
+    assert "TYP Tables 1–2" in text and "TYP Table 3" in text and "V2X-ViT" in text and "Skipped" not in text
+    assert "applied" in text and "[" in text
     metrics = json.loads(json.dumps(R.metrics_of(results)))
-    assert metrics["table2"]["attfuse"]["generated"]["ap50"].keys() == {"overall", "0-30", "30-50", "50-100"}
-    assert (root / "artifacts" / "fusion" / "models" / "oracle-v2xvit.pt").is_file()
+    assert metrics["table1"]["attfuse"]["generated"]["ap50"].keys() == set(BAND_NAMES)
+    assert set(metrics["targets"]) >= {"no_fusion_ap50", "beats_no_fusion", "v2xvit_ge_late", "generated_over_oracle"}
+    curves = bench.curves()
+    assert set(curves) == set(bench.plan.runs) and all(set(c) == {"0", "1"} for c in curves.values())
+
+
+def test_networks_load_back_as_saved(stage, project):
+    root, cfg = project
+    bench, _ = stage
+    loaded = F.load_networks(cfg, bench.roots, bench.out)
+    batch = bench.test_inputs().batch("v2xvit", [0])
+    with torch.no_grad():
+        a = batch.run(bench.networks["oracle-v2xvit"][1].model)
+        b = batch.run(loaded["oracle-v2xvit"][1].model)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+class _PerfectAgents(FusionModule):
+    """A stand-in network that outputs exactly what its method learns from: for ``own`` targets
+    every agent's own labels in its own frame, for ``fused`` the fused ground truth; the sample
+    is recognised by the pillars of its first cloud."""
+
+    def __init__(self, method: str, inputs: Inputs, coder):
+        super().__init__()
+        self.method, self.samples, self.coder = method, inputs.samples, coder
+        self.feature_stride = 2
+        self.index = {self._key(inputs.batch(method, [i]).pillars, 0): i for i in range(len(inputs))}
+
+    @staticmethod
+    def _key(pillars, b: int) -> bytes:
+        sel = pillars["voxel_coords"][:, 0] == b
+        return pillars["voxel_coords"][sel, 2:].numpy().tobytes()
+
+    def _heads(self, boxes) -> dict:
+        t = self.coder.assign_targets(boxes)
+        h, w, a = t["pos_equal_one"].shape
+        return {"psm": (t["pos_equal_one"] * 20 - 10).permute(2, 0, 1), "rm": t["targets"].permute(2, 0, 1),
+                "dm": torch.nn.functional.one_hot(t["dir_targets"], 2).float().view(h, w, 2 * a).permute(2, 0, 1) * 10}
+
+    def forward(self, pillars, *, agent_mask, transforms=None, time_delay=None, agent_types=None):
+        b, width = agent_mask.shape
+        rows = []
+        for k in range(b):
+            s = self.samples[self.index[self._key(pillars, k * width)]]
+            if METHODS[self.method].targets == "own":
+                rows += [self._heads(s.agent_boxes[slot]) for slot in range(width) if agent_mask[k, slot]]
+            else:
+                rows.append(self._heads(s.gt_boxes))
+        return {key: torch.stack([r[key] for r in rows]) for key in rows[0]}
+
+    def detections(self, output, coder, *, agent_mask, transforms, score_threshold, max_boxes):
+        if METHODS[self.method].targets == "own":
+            return LateFusion.boxes_in_ego(output, coder, agent_mask=agent_mask, transforms=transforms,
+                                           score_threshold=score_threshold, max_boxes_per_agent=max_boxes)
+        return super().detections(output, coder, agent_mask=agent_mask, transforms=transforms,
+                                  score_threshold=score_threshold, max_boxes=max_boxes)
+
+
+class _PerfectTrained(Trained):
+    def as_method(self, method: str) -> Trained:
+        return Trained(method, _PerfectAgents(method, self.inputs, self.coder), self.coder, "perfect", 0)
+
+
+def test_the_tables_of_perfect_agents_score_one(stage, project):
+    """Run the stage's tables with networks that output their labels: AP@0.5 and AP@0.7 overall
+    must be 1 in every cell of a method that hears the other agents. Ground truth in the wrong
+    frame, boxes moved the wrong way, a cell scored on the wrong run or frames dropped would not
+    give 1. No fusion's labels are the ego's, which never hold its own car: the fused ground
+    truth does wherever another agent labels it (OpenCOOD's convention), so its AP is exactly
+    the share of the other vehicles (precision 1 throughout)."""
+    root, cfg = project
+    bench, _ = stage
+    test = bench.test_inputs()
+    coder = box_coder(cfg, build_model("late", cfg))
+    perfect = _PerfectTrained("late", None, coder, "perfect", 0)
+    perfect.inputs = test
+    scorer = Scorer(cfg, bench.test, {run: [perfect] * 2 for run in bench.plan.runs})
+    tables = fill_tables(scorer, bench.plan.cells)
+    cells = [(t, m, r, c) for t, rows in tables.items() for m, row in rows.items() for r, c in row.items()]
+    assert len(cells) == len(list(METHODS)) * (1 + 1 + 3) - 1    # table1: ego/oracle + generated; table3: 3 rows
+    gts = [s.gt_boxes for s in test.samples]
+    own_car = sum(int((np.abs(g[:, :2]).max(1) < 1.0).sum()) for g in gts)
+    assert own_car > 0
+    ego_only = 1.0 - own_car / sum(len(g) for g in gts)
+    for table, method, row, cell in cells:
+        for c in ([cell] if table == "table1" else cell.values()):
+            expected = round(ego_only, 4) if method == "none" else 1.0
+            assert c["ap50"]["overall"]["value"] == expected and c["ap70"]["overall"]["value"] == expected, \
+                (table, method, row)
+            assert method == "none" or c["ap50"]["overall"]["low"] == 1.0
 
 
 def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):
     root, cfg = project
     shutil.copytree(root / "data" / "sim", tmp_path / "data" / "sim")
-    cfg = dataclasses.replace(cfg, methods=("none", "early"))
-    bench = F.Benchmark(cfg, F.Roots.from_config(cfg, tmp_path), tmp_path / "out")
-    table2 = F.oracle_vs_generated(bench)
-    assert "does not exist" in table2["early"]["generated"]["skipped"]
-    table3 = F.pretrain_finetune(bench)
-    assert "skipped" in table3["early"]["colwaymo"] and _valid(table3["early"]["source"]["all"])
-    results = {**F.summarize(bench, table2, table3, F.robustness(bench)), "seconds_total": 1.0,
-               "seconds_training": 0.5}
-    assert "## Skipped" in R.report_markdown(results, cfg)
-
-
-def test_training_resumes_from_its_last_checkpoint(project, tmp_path):
-    root, cfg = project
-    cfg = dataclasses.replace(cfg, batch_size=2)
-    inputs = F.Inputs(list(FusionDataset(root / "data" / "sim" / "real_cav" / "train",
-                                         lidar_range=cfg.detector.lidar_range)), cfg)
-    whole = F.train("attfuse", cfg, inputs, steps=3, out=tmp_path, name="run")
-    ckpts = checkpoints(next((tmp_path / "checkpoints" / "run").iterdir()))
-    assert [s for s, _ in ckpts] == [2, 3]
-    ckpts[-1][1].unlink()                                        # as if killed after step 2
-    resumed = F.train("attfuse", cfg, inputs, steps=3, out=tmp_path, name="run")
-    for (k, a), b in zip(whole.model.state_dict().items(), resumed.model.state_dict().values()):
-        assert torch.allclose(a.float(), b.float(), atol=1e-6), k
-    other = F.train("attfuse", dataclasses.replace(cfg, seed=1), inputs, steps=3, out=tmp_path, name="run")
-    assert other.key != whole.key
-
-
-@pytest.mark.parametrize("method", ["early", "attfuse", "v2xvit"])
-def test_warm_start_copies_the_single_agent_detector(project, method):
-    _, cfg = project
-    torch.manual_seed(1)
-    single = F.Trained("late", F.build_model("late", cfg), None, "k", 0)
-    model = F.build_model(method, cfg)
-    F.warm_start(model, single)
-    own = model.state_dict()
-    for k, v in single.model.detector.state_dict().items():
-        name = k if method == "v2xvit" else f"detector.{k}"
-        if method == "v2xvit" and k.startswith("head."):
-            continue                                   # V2X-ViT's head sits on the transformer: fresh
-        assert torch.equal(own[name], v), name
-
-
-class _PerfectAgents(nn.Module):
-    """A 'detector' that outputs, for every agent, exactly its own labels (one sample per batch)."""
-
-    def __init__(self, heads: list[dict]):
-        super().__init__()
-        self.heads = heads
-
-    def forward(self, pillars, *, agent_mask):
-        return self.heads.pop(0)
-
-
-def _perfect_heads(inputs: F.Inputs, coder) -> list[dict]:
-    heads = []
-    for s in inputs.samples:
-        t = [coder.assign_targets(b) for b in s.agent_boxes]
-        h, w, a = t[0]["pos_equal_one"].shape
-        heads.append({"psm": torch.stack([(x["pos_equal_one"] * 20 - 10).permute(2, 0, 1) for x in t]),
-                      "rm": torch.stack([x["targets"].permute(2, 0, 1) for x in t]),
-                      "dm": torch.stack([torch.nn.functional.one_hot(x["dir_targets"], 2).float().view(h, w, 2 * a)
-                                         .permute(2, 0, 1) * 10 for x in t])})
-    return heads
-
-
-def test_late_fusion_of_perfect_agents_recovers_the_ego_frame_ground_truth(project):
-    """Each agent reports its own labels in its own frame; moved by the sample's transforms they
-    must be the fused ground truth. Inverted transforms, or ground truth not in the ego frame,
-    break this."""
-    root, cfg = project
-    samples = list(FusionDataset(root / "data" / "sim" / "real_cav" / "test", lidar_range=cfg.detector.lidar_range))
-    assert all(s.num_agents > 1 for s in samples)
-    model = F.build_model("late", cfg)
-    coder = F.box_coder(cfg, model)
-
-    def predict(samples):
-        inputs = F.Inputs(samples, cfg)
-        trained = F.Trained("late", _PerfectAgents(_perfect_heads(inputs, coder)), coder, "k", 0)
-        return F.predict(trained, inputs, cfg, batch_size=1), inputs
-
-    preds, inputs = predict(samples)
-    for (boxes, _), s in zip(preds, samples):              # one box on each gt, nothing else
-        iou = rotated_iou_bev(boxes, s.gt_boxes)
-        assert len(boxes) == len(s.gt_boxes) and (iou.max(1) > 0.99).all() and (iou.max(0) > 0.99).all()
-    assert F.evaluate(preds, inputs)["ap70"]["overall"] > 0.99
-    inverted = [dataclasses.replace(s, transforms=np.stack([invert(t) for t in s.transforms])) for s in samples]
-    assert F.evaluate(*predict(inverted))["ap50"]["overall"] < 0.8
-
-
-def test_early_fusion_points_of_other_agents_fall_in_ego_frame_boxes(project):
-    root, cfg = project
-    inputs = F.Inputs(list(FusionDataset(root / "data" / "sim" / "real_cav" / "test",
-                                         lidar_range=cfg.detector.lidar_range)), cfg)
-    hits, misses = 0, 0
-    for i, s in enumerate(inputs.samples):
-        merged = F.merge_agent_points(s.clouds, s.transforms)
-        assert len(inputs.pillars(i, -1)["voxel_coords"]) > len(inputs.pillars(i, 0)["voxel_coords"])
-        start = len(s.clouds[0])
-        grown = s.gt_boxes + [0, 0, 0, 0.2, 0.2, 0.2, 0]
-        for k in range(1, s.num_agents):
-            part = merged[start:start + len(s.clouds[k])]
-            start += len(s.clouds[k])
-            hits += int(points_in_boxes(part, grown).any(1).sum())
-            wrong = transform_points(invert(s.transforms[k]), s.clouds[k])
-            misses += int(points_in_boxes(wrong, grown).any(1).sum())
-    assert hits > 200 and hits > 10 * misses
-
-
-def test_quantization_is_exact_at_high_bit_widths_and_coarse_at_low():
-    x = torch.randn(2, 3, 5, 6)
-    fine = F.quantize(x, 16, (2, 3))
-    assert (fine - x).abs().max() <= (x.amax((2, 3)) - x.amin((2, 3))).max() / (2 ** 16 - 1)
-    coarse = F.quantize(x, 2, (2, 3))
-    assert all(len(torch.unique(coarse[b, c])) <= 4 for b in range(2) for c in range(3))
-    assert torch.allclose(coarse.amin((2, 3)), x.amin((2, 3))) and torch.allclose(coarse.amax((2, 3)), x.amax((2, 3)))
+    cfg = dataclasses.replace(cfg, methods=("none", "early"), seeds=1)
+    plan = F.plan(cfg, F.Roots.from_config(cfg, tmp_path))
+    assert "does not exist" in plan.skipped["table1/generated"] and "table3/colwaymo" in plan.skipped
+    assert {c.row for c in plan.cells if c.table == "table3"} == {"source", "scratch"}
+    assert {c.row for c in plan.cells if c.table == "table1"} == {"ego", "oracle"}
+    text = R.report_markdown({"tables": {}, "robustness": {"levels": {}, "methods": {}, "applied_delay_ms": [],
+                                                            "delay_frames_scored": 0},
+                              "skipped": plan.skipped, "finetune_sets": {}, "test_frames": 1, "test_scenarios": 1,
+                              "test_gt_boxes": 1, "test_gt_boxes_by_band": {}, "train_frames": 1,
+                              "train_scenarios": 1, "runs": 1, "seeds": 1, "trainings": 1, "seconds_total": 1,
+                              "seconds_training": 1}, cfg)
+    assert "## Skipped" in text and "does not exist" in text
 
 
 @pytest.mark.parametrize("override, field", [
@@ -244,8 +267,16 @@ def test_quantization_is_exact_at_high_bit_widths_and_coarse_at_low():
     ({"robustness": {"delay_ms": [0, 150]}}, "fusion.robustness.delay_ms"),
     ({"finetune_scenes": [0]}, "fusion.finetune_scenes"),
     ({"score_threshold": 1.5}, "fusion.score_threshold"),
+    ({"augment": {"scale": [1.1, 0.9]}}, "fusion.augment.scale"),
+    ({"seeds": 0}, "fusion.seeds"),
+    ({"lr_schedule": "step"}, "fusion.lr_schedule"),
 ])
 def test_bad_fusion_params_fail_at_load(override, field):
     with pytest.raises(TypError) as err:
         config_from_dict({"fusion": override})
     assert err.value.field == field
+
+
+def test_config_names_come_from_the_registry():
+    assert config_from_dict({}).fusion.methods == tuple(METHODS)
+    assert [m.display for m in METHODS.values()] == ["No Fusion", "Early Fusion", "Late Fusion", "AttFuse", "V2X-ViT"]

@@ -158,3 +158,20 @@ def test_custom_ranges_and_bad_input():
         ap_by_range([None], [np.zeros((0, 7))], iou_thr=0.0)
     with pytest.raises(TypError):
         ap_by_range([None], [np.zeros((0, 7))], ranges=((30, 0),))
+
+
+def test_ap_of_frames_pools_any_choice_and_order_of_frames():
+    """Matching once per frame, then AP over chosen frames, is AP on those frames alone."""
+    from typ.metrics import ap_of_frames, frame_matches
+
+    rng = np.random.default_rng(0)
+    gts = [np.array([car(x) for x in rng.uniform(5, 80, k)]) for k in (2, 3, 1, 4)]
+    preds = [pred(*[(car(b[0] + rng.normal(0, 0.4)), s) for b, s in zip(g, rng.random(len(g)))],
+                  (car(40.0, 20.0), 0.95)) for g in gts]
+    m = frame_matches(preds, gts, iou_thr=0.5)
+    for frames in ([0, 1, 2, 3], [2, 0], [3, 3, 1], [1]):
+        expected = ap_by_range([preds[i] for i in frames], [gts[i] for i in frames], iou_thr=0.5)
+        for band in m.bands:
+            got = ap_of_frames(m, band, frames)
+            assert (math.isnan(got) and math.isnan(expected[band])) or got == pytest.approx(expected[band]), band
+    assert list(m.num_gt["overall"]) == [2, 3, 1, 4]

@@ -82,8 +82,10 @@ def test_adapter_and_fusion_detector_serve_their_named_outputs(store, one_torch_
     """Multi-output networks: the T2I-Adapter's feature list and a fusion detector's head dict."""
     from diffusers import T2IAdapter
 
-    from tasks import fusion
+    from tasks.fusion_batch import Inputs
     from tasks.fusion_data import FusionDataset
+    from tasks.fusion_serve import ServedDetector
+    from tasks.fusion_train import Trained, build_model
     from typ.formats.opv2v import write_scene
     from typ.sim import simulate_scenario
 
@@ -99,9 +101,9 @@ def test_adapter_and_fusion_detector_serve_their_named_outputs(store, one_torch_
     for scene in simulate_scenario(domain="real_cav", seed=3, n_frames=2, n_agents=2, scenario="real_cav_0003"):
         write_scene(scene, tmp_path / "scenes")
     data = FusionDataset(tmp_path / "scenes", lidar_range=cfg.fusion.detector.lidar_range)
-    inputs = fusion.Inputs(list(data), cfg.fusion)
-    trained = fusion.Trained("late", fusion.build_model("late", cfg.fusion).eval(), None, "k", 0)
-    served, example = fusion.ServedDetector(trained).eval(), fusion.ServedDetector.example("late", inputs)
+    inputs = Inputs(list(data), cfg.fusion)
+    trained = Trained("late", build_model("late", cfg.fusion).eval(), None, "k", 0)
+    served, example = ServedDetector(trained).eval(), ServedDetector.example("late", inputs)
     with stage_run("fusion", cfg, root=tmp_path) as run:
         adapter_uri = run.log_model("stage2-adapter", adapter, x)
         detector_uri = run.log_model("fusion-late", served, example)
@@ -117,7 +119,7 @@ def test_adapter_and_fusion_detector_serve_their_named_outputs(store, one_torch_
     assert sorted(model.metadata.signature.inputs.input_names()) == sorted(example)
     got = model.predict({k: v.numpy() for k, v in example.items()})
     with torch.no_grad():
-        expected = fusion.make_batch("late", inputs, range(2)).run(trained.model)
+        expected = inputs.batch("late", range(2)).run(trained.model)
     assert set(got) == set(expected)
     for k, e in expected.items():   # one row per present agent: 2 frames x 2 agents
         assert got[k].shape == tuple(e.shape) and e.shape[0] == 4

@@ -559,35 +559,67 @@ class RobustnessConfig:
 
 
 @dataclass(frozen=True)
+class AugmentConfig:
+    """OpenCOOD's training augmentation, one global similarity per sample: a flip of the y axis
+    with probability 0.5 (``flip``), a rotation about z drawn from U(-rotation_deg, rotation_deg)
+    and a scaling from U(scale[0], scale[1]); applied to every agent's cloud in its own frame, to
+    the boxes, and conjugated into the agent->ego transforms so that they stay rigid."""
+
+    flip: bool
+    rotation_deg: float
+    scale: tuple[float, float]
+
+    def check(self, where: str, name: str) -> None:
+        if not 0 <= self.rotation_deg <= 180:
+            raise TypError(where, f"{name}.rotation_deg", "an angle in [0, 180] degrees", self.rotation_deg)
+        if not 0 < self.scale[0] <= self.scale[1]:
+            raise TypError(where, f"{name}.scale", "[low, high] with 0 < low <= high", list(self.scale))
+
+
+@dataclass(frozen=True)
 class FusionConfig:
     """Stage ``fusion`` (TYP §4.2–4.5, Tables 1–3; V2VSSC §IV): collaborative detection benchmark.
 
-    Trains PointPillars with every fusion method on real_cav with oracle vs generated
-    cooperating clouds, pretrains on generated target / source data and fine-tunes on 0,
-    each of ``finetune_scenes`` and all real_cav training scenarios, and measures robustness.
-    ``warm_start``: early and intermediate fusion start from the single-agent (late-fusion)
-    detector trained on the same data and train ``warm_start_steps`` more at ``finetune_lr``
-    (off: from scratch, ``steps`` / ``pretrain_steps`` like the others, as OpenCOOD trains them).
+    ``methods``: names of ``models.fusion.METHODS`` (no and late fusion share one single-agent
+    detector). Every network is trained ``seeds`` times (seeds ``seed``, ``seed + 1``, ...).
+    The single-agent detector trains ``steps`` from scratch (``pretrain_steps`` on a pre-training
+    set); early and intermediate fusion start from it (``warm_start``) and train
+    ``warm_start_steps`` more at ``finetune_lr``, or from scratch for ``steps`` /
+    ``pretrain_steps`` like it (off, as OpenCOOD trains them). Fine-tuning a pre-trained network
+    on 1, each of ``finetune_scenes`` and all real_cav training scenarios takes ``finetune_steps``.
+    ``lr_schedule``: ``cosine`` (linear warm-up over ``warmup`` of the run, then cosine decay to
+    1 % of the peak) or ``constant`` (after the same warm-up). ``generated_extent``: half the side
+    (m) of the square around a cooperating agent that its generated cloud covers (the generator's
+    grid); its labels outside are not used with generated clouds. ``min_gt_points``: a vehicle is
+    ground truth when at least this many points of all agents' true clouds fall in its box
+    (V2V4Real labels what the fused LiDAR sees; 0: every vehicle within range, as OPV2V).
     """
 
-    methods: tuple[Literal["none", "early", "late", "attfuse", "v2xvit"], ...]
+    methods: tuple[str, ...]
     detector: DetectorConfig
     v2xvit: V2XViTConfig
     robustness: RobustnessConfig
+    augment: AugmentConfig
     comm_range: float
     max_agents: int
     batch_size: int
     lr: float
     finetune_lr: float
+    lr_schedule: Literal["constant", "cosine"]
+    warmup: float
     steps: int
     pretrain_steps: int
     finetune_steps: int
     finetune_scenes: tuple[int, ...]
     warm_start: bool
     warm_start_steps: int
+    seeds: int
+    generated_extent: float
+    min_gt_points: int
     score_threshold: float
     nms_threshold: float
     max_boxes: int
+    bootstrap: int
     seed: int
     checkpoint_every: int
     sim: str
@@ -603,21 +635,34 @@ class FusionConfig:
     out: str
 
     def check(self, where: str, name: str) -> None:
+        from models.fusion import METHODS  # the registry of fusion methods is the list of names
+
         self.detector.check(where, f"{name}.detector")
         self.v2xvit.check(where, f"{name}.v2xvit")
         self.robustness.check(where, f"{name}.robustness")
+        self.augment.check(where, f"{name}.augment")
+        for i, method in enumerate(self.methods):
+            if method not in METHODS:
+                raise TypError(where, f"{name}.methods[{i}]", f"one of {list(METHODS)}", method)
         if not self.methods or len(set(self.methods)) != len(self.methods):
-            raise TypError(where, f"{name}.methods", "each of none/early/late/attfuse/v2xvit at most once",
+            raise TypError(where, f"{name}.methods", f"each of {'/'.join(METHODS)} at most once",
                            list(self.methods))
         _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
-                         "pretrain_steps",
-                         "finetune_steps", "warm_start_steps", "max_boxes", "checkpoint_every")
+                         "pretrain_steps", "finetune_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
+                         "seeds", "generated_extent", "bootstrap")
         if any(n < 1 for n in self.finetune_scenes):
             raise TypError(where, f"{name}.finetune_scenes", "scenario counts >= 1 (0 and all are always run)",
                            list(self.finetune_scenes))
-        for key in ("score_threshold", "nms_threshold"):
+        for key in ("score_threshold", "nms_threshold", "warmup"):
             if not 0 <= getattr(self, key) < 1:
                 raise TypError(where, f"{name}.{key}", "a number in [0, 1)", getattr(self, key))
+        if self.min_gt_points < 0:
+            raise TypError(where, f"{name}.min_gt_points", "a point count >= 0", self.min_gt_points)
+
+    @property
+    def training_seeds(self) -> tuple[int, ...]:
+        """The seeds every network is trained with."""
+        return tuple(self.seed + k for k in range(self.seeds))
 
 
 @dataclass(frozen=True)
@@ -783,7 +828,7 @@ def profile_defaults(profile: str) -> dict:
         return own
     if parent == profile or parent not in data:
         raise TypError(PROFILES_FILE, f"{profile}.extends", f"another profile of {sorted(data)}", parent)
-    return _deep_merge(profile_defaults(parent), own)
+    return _deep_merge(profile_defaults(parent), own, whole=frozenset())  # a profile refines its parent
 
 
 @functools.lru_cache(maxsize=1)
@@ -798,13 +843,13 @@ def _profiles() -> dict:
 WHOLE = frozenset({"simulate.domains"})
 
 
-def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "") -> dict:
+def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "", whole: frozenset = WHOLE) -> dict:
     out = dict(base)
     for key, value in over.items():
-        if f"{prefix}{key}" in WHOLE:
+        if f"{prefix}{key}" in whole:
             out[key] = copy.deepcopy(value)
         elif isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value, where=where, prefix=f"{prefix}{key}.")
+            out[key] = _deep_merge(out[key], value, where=where, prefix=f"{prefix}{key}.", whole=whole)
         else:
             out[key] = value
     return out

@@ -10,6 +10,7 @@ _EXPORTS = {
     "PRESETS": "bev", "BevPreset": "bev", "bev_histogram": "bev", "jsd_bev": "bev", "mmd_bev": "bev",
     "chamfer_distance": "truth", "occupancy_iou": "truth", "voxel_iou": "truth",
     "PRCurve": "detection", "ap_by_range": "detection", "pr_curves": "detection",
+    "FrameMatches": "detection", "ap_of_frames": "detection", "frame_matches": "detection",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -158,19 +158,31 @@ def _curve(tp: np.ndarray, scores: np.ndarray, num_gt: int, global_sort: bool) -
     return PRCurve(ap, recall, precision, mrec, mpre, scores, tp, num_gt)
 
 
-def pr_curves(preds, gts, iou_thr: float = 0.5, ranges=DEFAULT_RANGES,
-              global_sort: bool = False) -> dict[str, PRCurve]:
-    """Per-band :class:`PRCurve` (``"overall"`` first, then :func:`band_name` of each range).
+@dataclass(frozen=True)
+class FrameMatches:
+    """Per band, per frame: which of the frame's detections (by descending score) are true
+    positives, their scores, and the frame's gt count — all AP needs, so that AP over any
+    choice and order of frames (a bootstrap replicate) is :func:`ap_of_frames` without matching
+    again."""
 
-    Same inputs and conventions as :func:`ap_by_range`; for PR plots use ``recall`` against
-    ``precision`` (raw) or ``mrec`` against ``mpre`` (the interpolated envelope OpenCOOD saves).
-    """
+    tp: dict[str, list[np.ndarray]]         # band -> per frame (D_i,) bool
+    scores: dict[str, list[np.ndarray]]     # band -> per frame (D_i,) float64
+    num_gt: dict[str, np.ndarray]           # band -> (frames,) int
+
+    @property
+    def bands(self) -> list[str]:
+        return list(self.tp)
+
+
+def frame_matches(preds, gts, iou_thr: float = 0.5, ranges=DEFAULT_RANGES) -> FrameMatches:
+    """Match every frame once, per band (conventions 1, 2, 6, 7 of the module doc); bands are
+    ``"overall"`` first, then :func:`band_name` of each range."""
     bands = _check_args(preds, gts, iou_thr, ranges)
     keys = ["overall"] + [band_name(lo, hi) for lo, hi in bands]
     limits = [(-np.inf, np.inf)] + bands
-    tps = {k: [] for k in keys}
-    scores = {k: [] for k in keys}
-    num_gt = dict.fromkeys(keys, 0)
+    tps: dict[str, list] = {k: [] for k in keys}
+    scores: dict[str, list] = {k: [] for k in keys}
+    num_gt: dict[str, list] = {k: [] for k in keys}
     for i, (pred, gt) in enumerate(zip(preds, gts)):
         det, score = _frame_pred(pred, i)
         gt = _frame_boxes(gt, f"gts[{i}]")
@@ -182,10 +194,34 @@ def pr_curves(preds, gts, iou_thr: float = 0.5, ranges=DEFAULT_RANGES,
             d_in, g_in = (lo < det_d) & (det_d < hi), (lo < gt_d) & (gt_d < hi)
             tps[key].append(_match(iou[np.ix_(d_in, g_in)], float(iou_thr)))
             scores[key].append(score[d_in])
-            num_gt[key] += int(g_in.sum())
-    return {k: _curve(np.concatenate(tps[k]) if tps[k] else np.zeros(0, bool),
-                      np.concatenate(scores[k]) if scores[k] else np.zeros(0),
-                      num_gt[k], global_sort) for k in keys}
+            num_gt[key].append(int(g_in.sum()))
+    return FrameMatches(tps, scores, {k: np.asarray(v, dtype=np.int64) for k, v in num_gt.items()})
+
+
+def _pooled(m: FrameMatches, band: str, frames) -> tuple[np.ndarray, np.ndarray, int]:
+    frames = list(frames)
+    tp = [m.tp[band][i] for i in frames]
+    sc = [m.scores[band][i] for i in frames]
+    return (np.concatenate(tp) if tp else np.zeros(0, bool), np.concatenate(sc) if sc else np.zeros(0),
+            int(m.num_gt[band][frames].sum()) if frames else 0)
+
+
+def ap_of_frames(m: FrameMatches, band: str, frames, global_sort: bool = False) -> float:
+    """AP of ``band`` over ``frames`` (indices, repeats allowed) concatenated in that order, as if
+    those frames were the whole evaluation set; NaN without gts."""
+    tp, scores, num_gt = _pooled(m, band, frames)
+    return _curve(tp, scores, num_gt, global_sort).ap
+
+
+def pr_curves(preds, gts, iou_thr: float = 0.5, ranges=DEFAULT_RANGES,
+              global_sort: bool = False) -> dict[str, PRCurve]:
+    """Per-band :class:`PRCurve` (``"overall"`` first, then :func:`band_name` of each range).
+
+    Same inputs and conventions as :func:`ap_by_range`; for PR plots use ``recall`` against
+    ``precision`` (raw) or ``mrec`` against ``mpre`` (the interpolated envelope OpenCOOD saves).
+    """
+    m = frame_matches(preds, gts, iou_thr, ranges)
+    return {k: _curve(*_pooled(m, k, range(len(preds))), global_sort) for k in m.bands}
 
 
 def ap_by_range(preds, gts, iou_thr: float = 0.5, ranges=DEFAULT_RANGES,
