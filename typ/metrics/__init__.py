@@ -1,4 +1,5 @@
 """Evaluation metrics: generation quality (BEV JSD/MMD), agreement with ground truth, detection AP,
+semantic scene completion IoU/mIoU,
 the evaluation-only generation figures and bootstrap intervals.
 
 Names are re-exported lazily (PEP 562), so importing one submodule does not import the others:
@@ -10,6 +11,7 @@ _EXPORTS = {
     "PRESETS": "bev", "BevPreset": "bev", "bev_histogram": "bev", "jsd_bev": "bev", "mmd_bev": "bev",
     "chamfer_distance": "truth", "occupancy_iou": "truth", "voxel_iou": "truth",
     "PRCurve": "detection", "ap_by_range": "detection", "pr_curves": "detection",
+    "SSC_CLASSES": "ssc", "SSC_CODE": "ssc", "ssc_confusion": "ssc", "ssc_iou": "ssc",
 }
 __all__ = sorted(_EXPORTS)
 
