@@ -192,3 +192,23 @@ def test_missing_or_damaged_file_and_bad_writes_are_named(tmp_path):
         read_occupancy(write_occupancy(tmp_path / "d.npz", np.ones((4, 4, 2), np.uint8), small))
     assert e.value.field == "shape"
     assert read_occupancy(tmp_path / "d.npz", small).sum() == 32
+
+
+def test_simulate_writes_each_views_map_beside_its_cloud(tmp_path):
+    from tasks.simulate import ScenarioJob
+    from typ.formats.opv2v import check_scenario, list_agents
+    from typ.sim import scenario_world
+
+    job = ScenarioJob(domain="real_cav", split="train", index=0, seed=11, n_agents=2, n_frames=2,
+                      azimuth_step_deg=2.0, comm_range=70.0, dt=0.1)
+    folder = tmp_path / job.name
+    folder.mkdir()
+    job.write(folder)
+    assert check_scenario(folder)["views"] == 4  # the OPV2V reader ignores the maps
+    maps = scene_occupancy(domain="real_cav", seed=11, n_frames=2, n_agents=2)
+    _, traffic, _ = scenario_world(domain="real_cav", seed=11, n_frames=2, n_agents=2)
+    agents = [str(i) for i in traffic.ids[traffic.agents]]
+    assert sorted(agents) == list_agents(folder)
+    for f, frame_maps in enumerate(maps):
+        for agent, labels in zip(agents, frame_maps):
+            assert np.array_equal(read_occupancy(occupancy_path(folder, agent, f"{f:06d}")), labels)
