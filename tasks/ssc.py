@@ -84,7 +84,7 @@ def train(ds: FusionDataset, *, steps: int, seed: int, lr: float = 2e-3, model_k
         loss.backward()
         opt.step()
         sched.step()
-        losses.append(float(loss))
+        losses.append(loss.item())
     model.eval()
     return SscModel(model, weights, losses)
 
