@@ -2,7 +2,9 @@
 from a real dataset (``simulate.sources``).
 
 Output: ``<out>/<domain>/<split>/<scenario>/<agent_id>/<timestamp>.pcd|.yaml`` (OPV2V layout,
-the ego is the first agent id in sorted order) plus ``<scenario>/_typ.json``, the scenario's
+the ego is the first agent id in sorted order), beside them each simulated view's semantic
+occupancy ground truth ``<timestamp>_semantic_occupancy.npz`` (:mod:`typ.ssc`; real datasets
+bring their own or none), plus ``<scenario>/_typ.json``, the scenario's
 job key. A real dataset's scenarios (the first ``scenarios[domain][split]`` of each split
 folder, by name) are checked before anything is written (:func:`plan_jobs`: layout, yaml
 keys, pose format, agents; the first bad file is named) and their ``.pcd``/``.yaml`` files are
@@ -33,10 +35,12 @@ import typ.formats.pcd
 import typ.geometry
 import typ.sim
 from typ.sim import simulate_scenario
+from typ.ssc import occupancy_path, scene_occupancy, write_occupancy
+import typ.ssc
 
 MANIFEST = "_typ.json"
 #: the simulator's and the writer's source: a change to either redoes every scenario
-_CODE = code_digest(typ.sim, typ.geometry, typ.formats.opv2v, typ.formats.pcd)
+_CODE = code_digest(typ.sim, typ.geometry, typ.formats.opv2v, typ.formats.pcd, typ.ssc)
 
 
 @dataclass(frozen=True)
@@ -71,9 +75,13 @@ class ScenarioJob:
         scenes = simulate_scenario(domain=self.domain, seed=self.seed, n_frames=self.n_frames,
                                    n_agents=self.n_agents, azimuth_step_deg=self.azimuth_step_deg,
                                    comm_range=self.comm_range, dt=self.dt, scenario=self.name, split=self.split)
-        for scene in scenes:
+        maps = scene_occupancy(domain=self.domain, seed=self.seed, n_frames=self.n_frames, n_agents=self.n_agents,
+                               comm_range=self.comm_range, dt=self.dt)
+        for scene, frame_maps in zip(scenes, maps):
             # write_scene writes into a folder named like the scenario: name it after tmp
             write_scene(dataclasses.replace(scene, scenario=tmp.name), tmp)
+            for agent, labels in zip(scene.agents, frame_maps):
+                write_occupancy(occupancy_path(tmp, agent, scene.timestamp), labels)
         return {"frames": len(scenes), "views": sum(len(s.agents) for s in scenes),
                 "points": int(sum(len(a.points) for s in scenes for a in s.agents.values())),
                 "boxes": int(sum(len(a.boxes) for s in scenes for a in s.agents.values()))}

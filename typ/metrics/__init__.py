@@ -1,4 +1,5 @@
 """Evaluation metrics: generation quality (BEV JSD/MMD), agreement with ground truth, detection AP,
+semantic scene completion IoU/mIoU,
 the evaluation-only generation figures and bootstrap intervals.
 
 Names are re-exported lazily (PEP 562), so importing one submodule does not import the others:
@@ -11,6 +12,7 @@ _EXPORTS = {
     "chamfer_distance": "truth", "occupancy_iou": "truth", "voxel_iou": "truth",
     "PRCurve": "detection", "ap_by_range": "detection", "pr_curves": "detection",
     "FrameMatches": "detection", "ap_of_frames": "detection", "frame_matches": "detection",
+    "SSC_CLASSES": "ssc", "SSC_CODE": "ssc", "ssc_confusion": "ssc", "ssc_iou": "ssc",
 }
 __all__ = sorted(_EXPORTS)
 

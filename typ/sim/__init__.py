@@ -8,14 +8,15 @@ writes nothing; :func:`cast` renders the TRUE view from any pose, which is what 
 never has.
 """
 from typ.sim.raycast import TownFrame, cast, town_frame
-from typ.sim.scenario import BOX_RANGE, sensor_pose, simulate_scenario
+from typ.sim.scenario import BOX_RANGE, scenario_world, sensor_pose, simulate_scenario
 from typ.sim.sensor import DOMAINS, DomainSpec, SensorSpec, domain_spec, horizon_dense_elevations
+from typ.sim.solids import Solids
 from typ.sim.town import Town, TownStyle, build_town
 from typ.sim.traffic import Traffic, simulate_traffic
 from typ.sim.vehicles import VEHICLE_CLASSES
 
 __all__ = [
-    "BOX_RANGE", "DOMAINS", "DomainSpec", "SensorSpec", "Town", "TownFrame", "TownStyle", "Traffic",
+    "BOX_RANGE", "DOMAINS", "DomainSpec", "SensorSpec", "Solids", "Town", "TownFrame", "TownStyle", "Traffic",
     "VEHICLE_CLASSES", "build_town", "cast", "domain_spec", "horizon_dense_elevations", "sensor_pose",
-    "simulate_scenario", "simulate_traffic", "town_frame",
+    "scenario_world", "simulate_scenario", "simulate_traffic", "town_frame",
 ]

@@ -16,7 +16,7 @@ from typ.geometry import invert, pose_to_matrix, transform_boxes
 from typ.scene import AgentView, Scene
 from typ.sim.raycast import cast, town_frame
 from typ.sim.sensor import domain_spec
-from typ.sim.town import build_town
+from typ.sim.town import Town, build_town
 from typ.sim.traffic import Traffic, simulate_traffic
 
 #: Vehicles further than this from a sensor (xy distance, m) get no box in its view.
@@ -69,11 +69,7 @@ def simulate_scenario(*, domain: str, seed: int, n_frames: int, n_agents: int, a
     sensor = replace(spec.sensor, azimuth_step_deg=azimuth_step_deg)
     scenario = scenario or f"sim_{domain}_{seed:06d}"
 
-    town_seed, traffic_seed, sensor_seed = np.random.SeedSequence(seed).spawn(3)
-    town = build_town(spec.town, np.random.default_rng(town_seed))
-    traffic = simulate_traffic(town, np.random.default_rng(traffic_seed), n_frames=n_frames, dt=dt, n_agents=n_agents,
-                               comm_range=comm_range, moving_vehicles=spec.moving_vehicles,
-                               class_probs=spec.moving_class_probs)
+    town, traffic, sensor_seed = _world(spec, seed, n_frames, n_agents, comm_range, dt)
     scenes = []
     for f, frame_seed in enumerate(sensor_seed.spawn(n_frames)):
         rng = np.random.default_rng(frame_seed)
@@ -90,6 +86,32 @@ def simulate_scenario(*, domain: str, seed: int, n_frames: int, n_agents: int, a
                                          where=f"sim:{scenario}/{agent_id}/{timestamp}")
         scenes.append(Scene(scenario=scenario, timestamp=timestamp, agents=agents, dataset=f"sim_{domain}", split=split))
     return scenes
+
+
+def _world(spec, seed: int, n_frames: int, n_agents: int, comm_range: float, dt: float):
+    """(town, traffic, the SeedSequence of the frames' sensor noise) of a scenario: no rays cast."""
+    town_seed, traffic_seed, sensor_seed = np.random.SeedSequence(seed).spawn(3)
+    town = build_town(spec.town, np.random.default_rng(town_seed))
+    traffic = simulate_traffic(town, np.random.default_rng(traffic_seed), n_frames=n_frames, dt=dt, n_agents=n_agents,
+                               comm_range=comm_range, moving_vehicles=spec.moving_vehicles,
+                               class_probs=spec.moving_class_probs)
+    return town, traffic, sensor_seed
+
+
+def scenario_world(*, domain: str, seed: int, n_frames: int, n_agents: int, comm_range: float = 70.0,
+                   dt: float = 0.1) -> tuple[Town, Traffic, np.ndarray]:
+    """The town, the traffic and the agents' (F, A, 4, 4) float64 sensor-to-world poses of the
+    scenario :func:`simulate_scenario` builds from the same arguments, without casting a ray:
+    the scene geometry behind its clouds (e.g. for semantic occupancy ground truth)."""
+    spec = domain_spec(domain)
+    seed = _check_int("seed", seed, 0)
+    n_frames = _check_int("n_frames", n_frames, 1)
+    n_agents = _check_int("n_agents", n_agents, 1, MAX_AGENTS)
+    comm_range, dt = _check_positive("comm_range", comm_range), _check_positive("dt", dt)
+    town, traffic, _ = _world(spec, seed, n_frames, n_agents, comm_range, dt)
+    poses = np.array([[sensor_pose(traffic.xy[f, a], traffic.yaw[f, a], spec.sensor.mount_height) for a in traffic.agents]
+                      for f in range(n_frames)]).reshape(n_frames, len(traffic.agents), 4, 4)
+    return town, traffic, poses
 
 
 def _visible_boxes(traffic: Traffic, frame: int, agent: int, pose: np.ndarray):

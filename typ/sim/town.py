@@ -16,6 +16,7 @@ import numpy as np
 
 from typ.scene import SEMANTIC_CODE
 from typ.sim import mesh
+from typ.sim.solids import Solids, SolidsBuilder
 from typ.sim.vehicles import sample_labels, sample_paint, sample_sizes
 
 
@@ -60,7 +61,8 @@ class Town:
     vertices (V, 3) float32 world; triangles (T, 3) uint32; tri_class (T,) uint8 semantic
     codes; tri_reflectivity (T,) float32 in (0, 1). Parked vehicles: parked_xy (P, 2),
     parked_yaw (P,) rad, parked_sizes (P, 3) ``(l, w, h)``, parked_labels, parked_paint (P,).
-    extent = (x0, x1, y0, y1) of the built area.
+    extent = (x0, x1, y0, y1) of the built area. solids: the same static objects as solids
+    (:mod:`typ.sim.solids`), for volumetric ground truth.
     """
 
     style: TownStyle
@@ -76,6 +78,7 @@ class Town:
     parked_sizes: np.ndarray
     parked_labels: tuple[str, ...]
     parked_paint: np.ndarray
+    solids: Solids = Solids()
 
 
 def _road_lines(n_range: tuple[int, int], spacing: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
@@ -104,19 +107,23 @@ def build_town(style: TownStyle, rng: np.random.Generator) -> Town:
     road_y = _road_lines(style.n_roads, style.block_size, rng)
     ext = (road_x[0] - style.margin, road_x[-1] + style.margin, road_y[0] - style.margin, road_y[-1] + style.margin)
     b = mesh.MeshBuilder()
+    s = SolidsBuilder()
     ground, road = SEMANTIC_CODE["ground"], SEMANTIC_CODE["road"]
 
     # Roads along y span the town; roads along x stop at the crossings, so no two surfaces
     # overlap coplanar (which one a ray hits there would be up to the BVH).
     b.add(_quads(road_x - hw, road_x + hw, ext[2], ext[3], 0.0), road, rng.uniform(0.07, 0.14, len(road_x)))
+    s.surfaces(road_x - hw, road_x + hw, ext[2], ext[3], 0.0, road)
     x_cells = _cells(road_x, hw, ext[0], ext[1])
     for cy in road_y:
         b.add(_quads([c[0] for c in x_cells], [c[1] for c in x_cells], cy - hw, cy + hw, 0.0), road, rng.uniform(0.07, 0.14))
+        s.surfaces([c[0] for c in x_cells], [c[1] for c in x_cells], cy - hw, cy + hw, 0.0, road)
     # Open land around the town, as a frame so it never overlaps the roads.
     far = 150.0
-    b.add(_quads([ext[0] - far, ext[1], ext[0], ext[0]], [ext[0], ext[1] + far, ext[1], ext[1]],
-                 [ext[2] - far, ext[2] - far, ext[2] - far, ext[3]], [ext[3] + far, ext[3] + far, ext[2], ext[3] + far], 0.0),
-          ground, 0.3)
+    frame = ([ext[0] - far, ext[1], ext[0], ext[0]], [ext[0], ext[1] + far, ext[1], ext[1]],
+             [ext[2] - far, ext[2] - far, ext[2] - far, ext[3]], [ext[3] + far, ext[3] + far, ext[2], ext[3] + far], 0.0)
+    b.add(_quads(*frame), ground, 0.3)
+    s.surfaces(*frame, ground)
 
     buildings: list[np.ndarray] = []   # rows [x0, y0, x1, y1, height]
     sidewalks: list[list[float]] = []  # rows [x0, y0, x1, y1]
@@ -124,6 +131,7 @@ def build_town(style: TownStyle, rng: np.random.Generator) -> Town:
     for cx0, cx1, road_l, road_r in x_cells:
         for cy0, cy1, road_b, road_t in _cells(road_y, hw, ext[2], ext[3]):
             b.add(_quads(cx0, cx1, cy0, cy1, 0.0), ground, rng.uniform(0.25, 0.45))
+            s.surfaces(cx0, cx1, cy0, cy1, 0.0, ground)
             edges = []  # (road?, strip rect, inward normal)
             edges.append((road_b, [cx0, cy0, cx1, cy0 + sw], (0.0, 1.0)))
             edges.append((road_t, [cx0, cy1 - sw, cx1, cy1], (0.0, -1.0)))
@@ -138,15 +146,15 @@ def build_town(style: TownStyle, rng: np.random.Generator) -> Town:
             buildings += _place_buildings(style, rng, (cx0, cx1, cy0, cy1), (road_b, road_t, road_l, road_r))
 
     sw_arr = np.array(sidewalks)
-    b.add(mesh.boxes_axis_aligned(np.c_[sw_arr[:, :2], np.zeros(len(sw_arr))],
-                                  np.c_[sw_arr[:, 2:], np.full(len(sw_arr), style.kerb_height)]),
-          ground, rng.uniform(0.35, 0.55, len(sw_arr)))
+    sw_lo, sw_hi = np.c_[sw_arr[:, :2], np.zeros(len(sw_arr))], np.c_[sw_arr[:, 2:], np.full(len(sw_arr), style.kerb_height)]
+    b.add(mesh.boxes_axis_aligned(sw_lo, sw_hi), ground, rng.uniform(0.35, 0.55, len(sw_arr)))
+    s.boxes(sw_lo, sw_hi, ground)
     bld = np.array(buildings).reshape(-1, 5)
-    _add_buildings(b, bld, rng)
-    _add_street_furniture(b, style, rng, street, bld, (road_x, road_y), ext)
+    _add_buildings(b, s, bld, rng)
+    _add_street_furniture(b, s, style, rng, street, bld, (road_x, road_y), ext)
     verts, tris, cls, refl = b.build()
     parked = _place_parked(style, rng, road_x, road_y, ext)
-    return Town(style, road_x, road_y, ext, verts, tris, cls, refl, *parked)
+    return Town(style, road_x, road_y, ext, verts, tris, cls, refl, *parked, solids=s.build())
 
 
 def _place_buildings(style: TownStyle, rng: np.random.Generator, cell, road_edges) -> list[np.ndarray]:
@@ -193,13 +201,14 @@ def _rects_touch(rect: np.ndarray, rects: np.ndarray, pad: float) -> bool:
                  & (rect[1] < rects[:, 3] + pad) & (rect[3] > rects[:, 1] - pad)).any())
 
 
-def _add_buildings(b: mesh.MeshBuilder, bld: np.ndarray, rng: np.random.Generator) -> None:
+def _add_buildings(b: mesh.MeshBuilder, s: SolidsBuilder, bld: np.ndarray, rng: np.random.Generator) -> None:
     """Boxes for buildings; a third get a set-back upper storey so roofs aren't all flat slabs."""
     if len(bld) == 0:
         return
     code = SEMANTIC_CODE["building"]
     refl = rng.uniform(0.2, 0.6, len(bld))
     b.add(mesh.boxes_axis_aligned(np.c_[bld[:, :2], np.zeros(len(bld))], np.c_[bld[:, 2:4], bld[:, 4]]), code, refl)
+    s.boxes(np.c_[bld[:, :2], np.zeros(len(bld))], np.c_[bld[:, 2:4], bld[:, 4]], code)
     top = rng.random(len(bld)) < 0.35
     inset = rng.uniform(1.5, 3.5, len(bld))
     size = bld[:, 2:4] - bld[:, :2]
@@ -209,9 +218,10 @@ def _add_buildings(b: mesh.MeshBuilder, bld: np.ndarray, rng: np.random.Generato
         i = inset[top][:, None]
         extra = rng.uniform(3.0, 8.0, len(t))
         b.add(mesh.boxes_axis_aligned(np.c_[t[:, :2] + i, t[:, 4]], np.c_[t[:, 2:4] - i, t[:, 4] + extra]), code, refl[top])
+        s.boxes(np.c_[t[:, :2] + i, t[:, 4]], np.c_[t[:, 2:4] - i, t[:, 4] + extra], code)
 
 
-def _add_street_furniture(b: mesh.MeshBuilder, style: TownStyle, rng: np.random.Generator,
+def _add_street_furniture(b: mesh.MeshBuilder, s: SolidsBuilder, style: TownStyle, rng: np.random.Generator,
                           street: list[tuple], bld: np.ndarray, roads, ext) -> None:
     """Street trees and lights on every road-facing sidewalk, signs near corners, yard trees."""
     tree_xy, light_xy, light_dir, sign_xy, sign_half = [], [], [], [], []
@@ -247,20 +257,24 @@ def _add_street_furniture(b: mesh.MeshBuilder, style: TownStyle, rng: np.random.
                   & (np.abs(yard[:, None, 1] - roads[1][None]) > clear).all(axis=1))
     yard = yard[off_street & ~_in_rects(yard, bld[:, :4], pad=4.0)]
     trees = np.concatenate(tree_xy + [yard])
-    _add_trees(b, trees, style, rng)
+    _add_trees(b, s, trees, style, rng)
     lights, ldir = np.concatenate(light_xy), np.concatenate(light_dir)
     signs, half = np.concatenate(sign_xy), np.concatenate(sign_half)
     pole = SEMANTIC_CODE["pole"]
     h = rng.uniform(6.0, 9.0, len(lights))
     b.add(mesh.cylinders(lights, np.zeros(len(lights)), h, np.full(len(lights), 0.11)), pole, 0.5)
+    s.cylinders(lights, 0.0, h, 0.11, pole)
     arm = rng.uniform(1.5, 2.8, len(lights))[:, None]
     tip = lights + ldir * arm
     lo = np.c_[np.minimum(lights, tip) - 0.06, h - 0.15]
     hi = np.c_[np.maximum(lights, tip) + 0.06, h]
     b.add(mesh.boxes_axis_aligned(lo, hi), pole, 0.55)
+    s.boxes(lo, hi, pole)
     b.add(mesh.cylinders(signs, np.zeros(len(signs)), np.full(len(signs), 2.6), np.full(len(signs), 0.04)), pole, 0.5)
-    b.add(mesh.boxes_axis_aligned(np.c_[signs - half, np.full(len(signs), 2.0)], np.c_[signs + half, np.full(len(signs), 2.7)]),
-          pole, 0.9)
+    s.cylinders(signs, 0.0, 2.6, 0.04, pole)
+    plate = (np.c_[signs - half, np.full(len(signs), 2.0)], np.c_[signs + half, np.full(len(signs), 2.7)])
+    b.add(mesh.boxes_axis_aligned(*plate), pole, 0.9)
+    s.boxes(*plate, pole)
 
 
 def _in_rects(xy: np.ndarray, rects: np.ndarray, pad: float) -> np.ndarray:
@@ -272,15 +286,23 @@ def _in_rects(xy: np.ndarray, rects: np.ndarray, pad: float) -> np.ndarray:
     return inside.any(axis=1)
 
 
-def _add_trees(b: mesh.MeshBuilder, xy: np.ndarray, style: TownStyle, rng: np.random.Generator) -> None:
+def _add_trees(b: mesh.MeshBuilder, s: SolidsBuilder, xy: np.ndarray, style: TownStyle, rng: np.random.Generator) -> None:
+    """Trees: a trunk into an ellipsoid canopy. The mesh is all vegetation (what a LiDAR's labels
+    say); the solids split the trunk at the canopy's lowest point into pole below and vegetation
+    above, V2VSSC's height split of trees."""
     n = len(xy)
     veg = SEMANTIC_CODE["vegetation"]
     trunk_h = rng.uniform(1.8, 3.5, n)
     radius_xy = rng.uniform(1.5, 3.2, n)
     radius_z = radius_xy * rng.uniform(0.9, 1.4, n)
-    b.add(mesh.cylinders(xy, np.zeros(n), trunk_h + 0.5 * radius_z, rng.uniform(0.12, 0.28, n), n=6), veg, 0.3)
-    b.add(mesh.ellipsoids(np.c_[xy, trunk_h + 0.8 * radius_z], np.c_[radius_xy, radius_xy, radius_z]), veg,
-          rng.uniform(0.4, 0.65, n))
+    trunk_top, trunk_r = trunk_h + 0.5 * radius_z, rng.uniform(0.12, 0.28, n)
+    centre, radii = np.c_[xy, trunk_h + 0.8 * radius_z], np.c_[radius_xy, radius_xy, radius_z]
+    b.add(mesh.cylinders(xy, np.zeros(n), trunk_top, trunk_r, n=6), veg, 0.3)
+    b.add(mesh.ellipsoids(centre, radii), veg, rng.uniform(0.4, 0.65, n))
+    canopy_bottom = centre[:, 2] - radius_z
+    s.cylinders(xy, 0.0, canopy_bottom, trunk_r, SEMANTIC_CODE["pole"])
+    s.cylinders(xy, canopy_bottom, trunk_top, trunk_r, veg)
+    s.ellipsoids(centre, radii, veg)
 
 
 def _place_parked(style: TownStyle, rng: np.random.Generator, road_x: np.ndarray, road_y: np.ndarray, ext):
