@@ -79,18 +79,23 @@ def save_torch(path: Path, obj: dict) -> None:
     write_bytes(path, buf.getvalue())
 
 
-def load_torch(path: Path, what: str) -> dict:
-    """Load a saved model file; a missing one names the stage that makes it."""
-    if not path.exists():
-        raise TypError(path, "file", f"a trained {what} first: dvc repro)", "missing")
-    return torch.load(path, map_location="cpu", weights_only=False)
-
-
 def load_latest(directory: Path) -> dict | None:
+    """The newest checkpoint of a run (None when there is none), read with ``weights_only``: a
+    checkpoint holds tensors, numbers and dicts, never code. A truncated or foreign file raises
+    naming it; delete it (or the run's folder) to resume from the one before or start again."""
     found = checkpoints(directory)
     if not found:
         return None
-    return torch.load(found[-1][1], map_location="cpu", weights_only=False)
+    path = found[-1][1]
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises RuntimeError, EOFError, UnpicklingError, zipfile errors
+        raise TypError(path, "file", "a complete training checkpoint (tensors and numbers only; delete it "
+                       "to resume from the previous one)", f"{type(exc).__name__}: {str(exc)[:200]}") from None
+    if not isinstance(state, dict) or "step" not in state:
+        raise TypError(path, "step", "a checkpoint dict with the step it was taken at",
+                       type(state).__name__ if not isinstance(state, dict) else sorted(state)[:5])
+    return state
 
 
 @dataclass
