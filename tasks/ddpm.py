@@ -450,47 +450,61 @@ def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], t
     return rows, trained, examples
 
 
-def latent_route(cfg, root: Path, nets) -> list[dict]:
-    """TYP's latent route on the same held-out views: stage 1 (P(x|y), VQ latents) sampled with
-    each ``ddpm.latent.samplers`` entry for the first ``latent.views`` test views, conditioned on
-    their own box maps, post-processed with its tuned thresholds; scored against the true views'
-    voxel centres (its representation), with voxel IoU to the truth. One trained model: the
-    intervals cover the sample spread only. ``cfg``: the whole :class:`typ.config.Config`.
-    """
+def latent_sampler(cfg, root: Path, views) -> tuple[Callable[[str, int], np.ndarray], dict]:
+    """The one place that knows how TYP's generator is loaded and called (adapt it here when the
+    generator's API changes): stage 1 with its VQ-VAEs and tuned post-processing, conditioned on
+    ``views``' own box maps. Returns (sample(sampler, steps) -> (N, C, H, W) bool occupancy,
+    {"schedule", "embedding"} of the model)."""
     from models.postprocess import postprocess
     from tasks import stage1
+    from tasks.vqvae import load_model as load_vqvae
+
+    latent = cfg.ddpm.latent
+    model, saved = stage1.load_model(root / latent.stage1)
+    x_vq, y_vq = (load_vqvae(root / latent.vqvae / k) for k in ("x", "y"))
+    _, y_lat = stage1.encode_views(x_vq, y_vq, views)
+    thresholds = saved["postprocess"]
+
+    def sample_occupancy(sampler: str, steps: int) -> np.ndarray:
+        sampling = stage1.sampling_config(cfg.stage1, saved, sampler, steps)
+        seed = cfg.ddpm.seed
+        logits = stage1.sample_logits(model, x_vq, y_lat, cfg=sampling, generator=torch.Generator().manual_seed(seed))
+        return postprocess(logits, low=thresholds["low"], high=thresholds["high"], noise_std=thresholds["noise_std"],
+                           generator=torch.Generator().manual_seed(seed)).numpy()
+
+    return sample_occupancy, {"schedule": saved["schedule"], "embedding": model.config["time_embedding"]}
+
+
+def latent_route(cfg, root: Path, nets) -> list[dict]:
+    """TYP's latent route on the same held-out views: its generator (:func:`latent_sampler`)
+    sampled with each ``ddpm.latent.samplers`` entry for the first ``latent.views`` test views,
+    conditioned on their own box maps; scored against the true views' voxel centres (its
+    representation), with voxel IoU to the truth. One trained model: the intervals cover the
+    sample spread only. ``cfg``: the whole :class:`typ.config.Config`.
+    """
     from tasks.ddpm_metrics import score, set_stats
     from tasks.voxel_data import load_views
-    from tasks.vqvae import load_model as load_vqvae
     from typ.metrics import occupancy_iou
     from typ.voxel import voxel_centers
 
     block, latent = cfg.ddpm, cfg.ddpm.latent
-    model, saved = stage1.load_model(root / latent.stage1)
-    x_vq, y_vq = (load_vqvae(root / latent.vqvae / k) for k in ("x", "y"))
     views = load_views(root / latent.voxels, dataset=block.domain, split=block.test_split, ego_only=False)
     views = views.head(latent.views)
     x_true, _ = views.batch(np.arange(len(views)))
-    _, y_lat = stage1.encode_views(x_vq, y_vq, views)
     truth = x_true.numpy() > 0.5
+    sample_occupancy, model = latent_sampler(cfg, root, views)
 
     def centres(occupancy: np.ndarray) -> list[np.ndarray]:
         return [voxel_centers(o.transpose(1, 2, 0), views.grid).astype(np.float32) for o in occupancy]
 
     real = set_stats(centres(truth), nets)
-    thresholds = saved["postprocess"]
     rows = []
     for sampler, steps in latent.samplers:
-        sampling = stage1.sampling_config(cfg.stage1, saved, sampler, steps)
         t0 = time.perf_counter()
-        logits = stage1.sample_logits(model, x_vq, y_lat, cfg=sampling, generator=torch.Generator().manual_seed(block.seed))
-        occupancy = postprocess(logits, low=thresholds["low"], high=thresholds["high"],
-                                noise_std=thresholds["noise_std"],
-                                generator=torch.Generator().manual_seed(block.seed)).numpy()
+        occupancy = sample_occupancy(sampler, steps)
         seconds = (time.perf_counter() - t0) / len(views)
-        rows.append(_row("latent", "voxel", "TYP stage 1", schedule=saved["schedule"], embedding=model.config["time_embedding"],
-                         sampler=sampler, steps=steps, seconds_per_sample=seconds, seeds=[0],
-                         iou=float(occupancy_iou(occupancy, truth)["iou"]),
+        rows.append(_row("latent", "voxel", "TYP stage 1", **model, sampler=sampler, steps=steps,
+                         seconds_per_sample=seconds, seeds=[0], iou=float(occupancy_iou(occupancy, truth)["iou"]),
                          **score(real, [set_stats(centres(occupancy), nets)], n_boot=block.bootstrap, seed=block.seed)))
     return rows
 
