@@ -15,6 +15,8 @@ own under ``--root`` whose params.yaml is the tiny profile with :data:`SWEEP` ov
   also with DDIM-50 and DPM-Solver++ 20 / 10; TYP's stage 1 beside them. (The BEV image is in
   the stage's tiny run; here it would cost another quarter hour.)
 - ``--quick``: 2 configurations x 1 seed at a few steps (checks the wiring in minutes).
+- ``--medium``: J against A on the range image, 1 seed each, 1000 training steps, DDPM-1000 and
+  DPM-Solver++ 20, on the tiny pipeline's data (about 20 min at one thread).
 
 Every trained model and generated set is cached under ``--root`` (keys: config, data, code),
 so an interrupted sweep resumes where it stopped. Writes <out>/bench_ddpm.md (the stage's
@@ -80,15 +82,25 @@ QUICK = {
     "steps": 20, "eval_samples": 3, "bootstrap": 50, "features": {"steps": 10},
     "latent": {"samplers": [["dpmsolver++", 10]], "views": 3},
 }
+#: J against A on the range image at a training budget where the models are no longer flat
+MEDIUM = {
+    "configs": [_config("J", "time_dependent", "fourier", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
+                _config("A", "linear", "sinusoidal", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]])],
+    "steps": 1000, "batch_size": 8, "eval_samples": 8, "bootstrap": 500,
+    "latent": {"samplers": [["dpmsolver++", 10]], "views": 8},
+}
 
 
-def sweep_params(repo: Path, *, quick: bool) -> dict:
-    """The bench project's params.yaml: :data:`SWEEP` (or its quick version), with the latent
-    route pointed at this checkout's trained stage-1 and VQ-VAE models."""
+def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False) -> dict:
+    """The bench project's params.yaml: :data:`SWEEP` (or its quick / medium version), with the
+    latent route pointed at this checkout's trained stage-1 and VQ-VAE models."""
     params = copy.deepcopy(SWEEP)
     if quick:
         params["simulate"]["scenarios"] = {"target": {"train": 2, "test": 1}}
         params["ddpm"].update(copy.deepcopy(QUICK))
+    elif medium:
+        del params["simulate"]  # the tiny pipeline's data
+        params["ddpm"].update(copy.deepcopy(MEDIUM))
     params["ddpm"]["latent"].update({"stage1": str((repo / "artifacts" / "stage1").resolve()),
                                      "vqvae": str((repo / "artifacts" / "vqvae").resolve())})
     return params
@@ -110,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="reports", help="folder for bench_ddpm.md and its plots")
     parser.add_argument("--root", default="artifacts/bench_ddpm", help="the bench project (cache, data, models)")
     parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
+    parser.add_argument("--medium", action="store_true",
+                        help="J vs A on the range image, 1 seed, 1000 training steps (about 20 min at one thread)")
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
@@ -118,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         print("bench/ddpm.py: artifacts/stage1/model.pt is missing: run `make run` (or dvc repro stage1) first")
         return 2
     root.mkdir(parents=True, exist_ok=True)
-    write_text(root / "params.yaml", yaml.safe_dump(sweep_params(REPO, quick=args.quick), sort_keys=False))
+    write_text(root / "params.yaml", yaml.safe_dump(sweep_params(REPO, quick=args.quick, medium=args.medium), sort_keys=False))
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlruns.db'}", "PYTHONPATH": str(REPO)}
     seconds = run_stages(root, env)
     info = machine()
@@ -128,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     title, _, body = md.partition("\n")
     header = (f"{title.replace('# ', '# bench: ', 1)}\n\nMachine: {machine_line(info)}; `OMP_NUM_THREADS="
               f"{os.environ.get('OMP_NUM_THREADS', 'unset')}`. Wall time per stage of the bench project "
-              f"({'--quick' if args.quick else 'full sweep'}): "
+              f"({'--quick' if args.quick else '--medium' if args.medium else 'full sweep'}): "
               + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items())
               + ". Params: `bench/ddpm.py` SWEEP over the tiny profile (written to "
               f"`{args.root}/params.yaml`).\n")

@@ -293,10 +293,14 @@ def test_the_bench_sweep_is_a_valid_config_covering_table_one():
     spec.loader.exec_module(bench)
     sweep_params = bench.sweep_params
 
-    for quick in (False, True):
-        params = sweep_params(repo, quick=quick)
+    for mode in ({}, {"quick": True}, {"medium": True}):
+        params = sweep_params(repo, **mode)
         cfg = config_from_dict(params).ddpm
         assert Path(cfg.latent.stage1).is_absolute() and Path(cfg.latent.stage1).name == "stage1"
+    medium = config_from_dict(sweep_params(repo, medium=True))
+    assert {(r.name, r.schedule, r.embedding) for r in medium.ddpm.configs} == {
+        ("J", "time_dependent", "fourier"), ("A", "linear", "sinusoidal")}
+    assert medium.simulate == config_from_dict({"profile": "tiny"}).simulate  # the tiny pipeline's data
     full = config_from_dict(sweep_params(repo, quick=False)).ddpm
     seeds = {r.name: len(r.seeds) for r in full.configs}
     assert seeds == {"A": 3, "B": 3, "C": 1, "D": 1, "E*": 3, "F": 3, "G": 1, "H": 1, "J": 3}
