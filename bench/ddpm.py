@@ -16,7 +16,8 @@ own under ``--root`` whose params.yaml is the tiny profile with :data:`SWEEP` ov
   the stage's tiny run; here it would cost another quarter hour.)
 - ``--quick``: 2 configurations x 1 seed at a few steps (checks the wiring in minutes).
 - ``--medium``: J against A on the range image, 1 seed each, 1000 training steps, DDPM-1000 and
-  DPM-Solver++ 20, on the tiny pipeline's data (about 20 min at one thread).
+  DPM-Solver++ 20, on the tiny pipeline's data (28 min wall at one thread on a shared 2-core
+  machine: feature nets ~8 min, each model ~8 min, each DDPM-1000 set ~1.5 min).
 
 Every trained model and generated set is cached under ``--root`` (keys: config, data, code),
 so an interrupted sweep resumes where it stopped. Writes <out>/bench_ddpm.md (the stage's
@@ -86,7 +87,7 @@ QUICK = {
 MEDIUM = {
     "configs": [_config("J", "time_dependent", "fourier", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
                 _config("A", "linear", "sinusoidal", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]])],
-    "steps": 1000, "batch_size": 8, "eval_samples": 8, "bootstrap": 500,
+    "steps": 1000, "batch_size": 8, "eval_samples": 8, "bootstrap": 500, "features": {"steps": 400},
     "latent": {"samplers": [["dpmsolver++", 10]], "views": 8},
 }
 
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", default="artifacts/bench_ddpm", help="the bench project (cache, data, models)")
     parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
     parser.add_argument("--medium", action="store_true",
-                        help="J vs A on the range image, 1 seed, 1000 training steps (about 20 min at one thread)")
+                        help="J vs A on the range image, 1 seed, 1000 training steps (about 30 min at one thread)")
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
