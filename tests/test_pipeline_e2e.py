@@ -40,6 +40,12 @@ SMALL = {
                "robustness": {"position_std": [0.0, 0.2], "heading_std_deg": [0.0, 0.4], "delay_ms": [0, 100],
                               "quantization_bits": [8]}},
     "evaluate": {"n_boot": 20, "max_pairs": 2, "gallery": 1},
+    "ddpm": {"steps": 2, "checkpoint_every": 1, "eval_samples": 2, "bootstrap": 10,
+             "unet": {"block_out_channels": [8, 16, 16]}, "features": {"steps": 2, "width": 4},
+             "configs": [{"name": "J", "representation": "range", "schedule": "time_dependent", "embedding": "fourier",
+                          "samplers": [["ddpm", 20], ["dpmsolver++", 3]]},
+                         {"name": "A", "representation": "bev", "schedule": "linear", "embedding": "sinusoidal"}],
+             "samplers": [["dpmsolver++", 3]], "latent": {"samplers": [["dpmsolver++", 2]], "views": 2}},
 }
 
 
@@ -331,6 +337,34 @@ def test_show_renders_generated_agents_beside_their_true_views(project, tmp_path
         assert all((tmp_path / n).stat().st_size > 20_000 for n in names)
 
 
+def test_ddpm_stage_writes_its_table_models_and_report(project):
+    from tasks.training import load_weights
+
+    proj, _, _ = project
+    dd = json.loads((proj / "metrics" / "ddpm.json").read_text())
+    # test split: 1 scenario x 2 frames x 2 agents; every row scored on the same 4 views
+    assert dd["test_scans"] == 4 and dd["train_scans"] == 4
+    assert {"range full noise", "range real train views", "range J ddpm-20", "range J dpmsolver++-3",
+            "bev full noise", "bev real train views", "bev A dpmsolver++-3",
+            "voxel TYP stage 1 dpmsolver++-2"} == set(dd["rows"])
+    for name, row in dd["rows"].items():
+        for m in ("jsd", "mmd", "frid", "fpvd"):
+            assert row[m]["low"] <= row[m]["high"], (name, m)
+        assert 0.0 <= row["jsd"]["value"] <= 0.833  # sqrt(ln 2) at most
+    assert dd["rows"]["voxel TYP stage 1 dpmsolver++-2"]["iou"] is not None
+    assert dd["round_trip"]["range"]["max_error_over_bound"] <= 1.0
+    assert set(dd["feature_nets"]) == {"range", "voxel"} and set(dd["models"]) == {
+        "range-time_dependent-fourier-seed0", "bev-linear-sinusoidal-seed0"}
+    for name in dd["models"]:
+        state, config = load_weights(proj / "artifacts" / "ddpm" / "models" / name, "ddpm")
+        assert config["train_timesteps"] == 1000 and state
+    text = (proj / "reports" / "ddpm.md").read_text()
+    assert "Table II analogue: range image" in text and "Side by side with TYP's latent route" in text
+    assert "compare rows within typ only" in text and "## Targets" in text
+    assert (proj / "reports" / "ddpm_pareto.png").stat().st_size > 10_000
+    assert (proj / "reports" / "ddpm_samples.png").stat().st_size > 10_000
+
+
 def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
     import mlflow
 
@@ -356,7 +390,8 @@ def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
         stage_runs.setdefault(r.data.tags["typ.stage"], set()).add(r.info.run_id)
     owners = {"vqvae-x": "vqvae", "stage1-ldm": "stage1", "adapt-source-vq": "adapt",
               "stage2-adapter": "stage2", "selftrain-adapter": "selftrain",
-              **{f"fusion-{m}": "fusion" for m in ("none", "early", "late", "attfuse", "v2xvit")}}
+              **{f"fusion-{m}": "fusion" for m in ("none", "early", "late", "attfuse", "v2xvit")},
+              "ddpm-frid-net": "ddpm", "ddpm-fpvd-net": "ddpm", "ddpm-range-time_dependent-fourier-seed0": "ddpm"}
     assert set(owners) <= set(logged), set(owners) - set(logged)
     for name, stage in owners.items():
         assert logged[name] <= stage_runs[stage], name

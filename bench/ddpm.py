@@ -1,0 +1,160 @@
+"""LiDAR DDPM Table II sweep: the ddpm stage with every Table I configuration and 3 seeds.
+
+    python bench/ddpm.py [--out reports] [--root artifacts/bench_ddpm] [--quick]
+
+Run from the repository root after `make run` (the latent route samples artifacts/stage1 with
+artifacts/vqvae). The sweep is the ddpm stage itself, run through the CLI in a project of its
+own under ``--root`` whose params.yaml is the tiny profile with :data:`SWEEP` over it:
+
+- data: more simulated target-domain scenarios than the tiny pipeline (``simulate`` and
+  ``voxelize`` run there first, at the pipeline's azimuth step so TYP's stage 1 sees data like
+  its training data);
+- ``ddpm``: the range image (the target sensor's 64 beams x 256 azimuth bins) with Table I's
+  configurations A, B, C, D, E*, F, G, H, J (I = H and K = J: they differ only in the dataset);
+  A, B, F (and so E*) and J over 3 training seeds, the others 1; DDPM-1000 rows (E*: 800), J
+  also with DDIM-50 and DPM-Solver++ 20 / 10; TYP's stage 1 beside them. (The BEV image is in
+  the stage's tiny run; here it would cost another quarter hour.)
+- ``--quick``: 2 configurations x 1 seed at a few steps (checks the wiring in minutes).
+- ``--medium``: J against A on the range image, 1 seed each, 1000 training steps, DDPM-1000 and
+  DPM-Solver++ 20, on the tiny pipeline's data (28 min wall at one thread on a shared 2-core
+  machine: feature nets ~8 min, each model ~8 min, each DDPM-1000 set ~1.5 min).
+
+Every trained model and generated set is cached under ``--root`` (keys: config, data, code),
+so an interrupted sweep resumes where it stopped. Writes <out>/bench_ddpm.md (the stage's
+report with this machine's header), bench_ddpm_pareto.png, bench_ddpm_samples.png and
+bench_ddpm.json (the stage's metrics).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable from a checkout
+
+from typ.io import write_text  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _config(name: str, schedule: str, embedding: str, seeds=(0, 1, 2), samplers=None, rep="range") -> dict:
+    row = {"name": name, "representation": rep, "schedule": schedule, "embedding": embedding, "seeds": list(seeds)}
+    if samplers:
+        row["samplers"] = samplers
+    return row
+
+
+#: over the tiny profile: the sweep's data and its ddpm block
+SWEEP = {
+    "profile": "tiny",
+    "simulate": {"scenarios": {"target": {"train": 12, "test": 4}}},
+    "ddpm": {
+        "configs": [
+            _config("A", "linear", "sinusoidal"),
+            _config("B", "linear", "fourier"),
+            _config("C", "hyperbolic", "fourier", seeds=(0,)),
+            _config("D", "hyperbolic", "sinusoidal", seeds=(0,)),
+            _config("E*", "ramp", "fourier", samplers=[["ddpm", 800]]),
+            _config("F", "ramp", "fourier"),
+            _config("G", "ramp", "sinusoidal", seeds=(0,)),
+            _config("H", "time_dependent", "sinusoidal", seeds=(0,)),
+            _config("J", "time_dependent", "fourier",
+                    samplers=[["ddpm", 1000], ["ddim", 50], ["dpmsolver++", 20], ["dpmsolver++", 10]]),
+        ],
+        "samplers": [["ddpm", 1000]],
+        "steps": 1500,
+        "batch_size": 4,     # the paper's (§IV-2)
+        "eval_samples": 12,
+        "bootstrap": 1000,
+        "features": {"steps": 400},
+        "latent": {"samplers": [["ddim", 200], ["dpmsolver++", 20], ["dpmsolver++", 10]], "views": 12},
+    },
+}
+QUICK = {
+    "configs": [_config("J", "time_dependent", "fourier", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
+                _config("A", "linear", "sinusoidal", seeds=(0,))],
+    "steps": 20, "eval_samples": 3, "bootstrap": 50, "features": {"steps": 10},
+    "latent": {"samplers": [["dpmsolver++", 10]], "views": 3},
+}
+#: J against A on the range image at a training budget where the models are no longer flat
+MEDIUM = {
+    "configs": [_config("J", "time_dependent", "fourier", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
+                _config("A", "linear", "sinusoidal", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]])],
+    "steps": 1000, "batch_size": 8, "eval_samples": 8, "bootstrap": 500, "features": {"steps": 400},
+    "latent": {"samplers": [["dpmsolver++", 10]], "views": 8},
+}
+
+
+def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False) -> dict:
+    """The bench project's params.yaml: :data:`SWEEP` (or its quick / medium version), with the
+    latent route pointed at this checkout's trained stage-1 and VQ-VAE models."""
+    params = copy.deepcopy(SWEEP)
+    if quick:
+        params["simulate"]["scenarios"] = {"target": {"train": 2, "test": 1}}
+        params["ddpm"].update(copy.deepcopy(QUICK))
+    elif medium:
+        del params["simulate"]  # the tiny pipeline's data
+        params["ddpm"].update(copy.deepcopy(MEDIUM))
+    params["ddpm"]["latent"].update({"stage1": str((repo / "artifacts" / "stage1").resolve()),
+                                     "vqvae": str((repo / "artifacts" / "vqvae").resolve())})
+    return params
+
+
+def run_stages(root: Path, env: dict) -> dict[str, float]:
+    """simulate, voxelize and ddpm in the bench project through the CLI; wall seconds per stage."""
+    seconds = {}
+    for stage in ("simulate", "voxelize", "ddpm"):
+        t0 = time.perf_counter()
+        subprocess.run([str(Path(sys.executable).parent / "typ"), "--root", str(root), "run", stage], env=env,
+                       check=True)
+        seconds[stage] = round(time.perf_counter() - t0, 1)
+    return seconds
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", default="reports", help="folder for bench_ddpm.md and its plots")
+    parser.add_argument("--root", default="artifacts/bench_ddpm", help="the bench project (cache, data, models)")
+    parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
+    parser.add_argument("--medium", action="store_true",
+                        help="J vs A on the range image, 1 seed, 1000 training steps (about 30 min at one thread)")
+    args = parser.parse_args(argv)
+    from bench.report import machine, machine_line
+
+    root, out = Path(args.root).resolve(), Path(args.out)
+    if not (REPO / "artifacts" / "stage1" / "model.pt").exists():
+        print("bench/ddpm.py: artifacts/stage1/model.pt is missing: run `make run` (or dvc repro stage1) first")
+        return 2
+    root.mkdir(parents=True, exist_ok=True)
+    write_text(root / "params.yaml", yaml.safe_dump(sweep_params(REPO, quick=args.quick, medium=args.medium), sort_keys=False))
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlruns.db'}", "PYTHONPATH": str(REPO)}
+    seconds = run_stages(root, env)
+    info = machine()
+    md = (root / "reports" / "ddpm.md").read_text()
+    md = md.replace("(ddpm_pareto.png)", "(bench_ddpm_pareto.png)").replace("(ddpm_samples.png)",
+                                                                            "(bench_ddpm_samples.png)")
+    title, _, body = md.partition("\n")
+    header = (f"{title.replace('# ', '# bench: ', 1)}\n\nMachine: {machine_line(info)}; `OMP_NUM_THREADS="
+              f"{os.environ.get('OMP_NUM_THREADS', 'unset')}`. Wall time per stage of the bench project "
+              f"({'--quick' if args.quick else '--medium' if args.medium else 'full sweep'}): "
+              + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items())
+              + ". Params: `bench/ddpm.py` SWEEP over the tiny profile (written to "
+              f"`{args.root}/params.yaml`).\n")
+    out.mkdir(parents=True, exist_ok=True)
+    write_text(out / "bench_ddpm.md", header + body)
+    for name in ("ddpm_pareto.png", "ddpm_samples.png"):
+        shutil.copyfile(root / "reports" / name, out / f"bench_{name}")
+    shutil.copyfile(root / "metrics" / "ddpm.json", out / "bench_ddpm.json")
+    print(f"wrote {out / 'bench_ddpm.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,537 @@
+"""Stage ``ddpm``: the LiDAR DDPM system (Aghanouri & Olaverri-Monreal) on the target domain.
+
+A pixel-space U-Net DDPM (:class:`models.pixel_ddpm.PixelDiffusion`) is trained on range images
+and BEV images (:mod:`typ.projection`) of the simulated target domain's scans, once per Table I
+configuration (schedule x time embedding) and training seed, and sampled with each configured
+sampler; generated images go back to points, which are what every metric compares.
+
+- Scans: every agent's view of the ``train`` / ``test`` scenarios (``ego_only`` keeps the
+  first agent only); each carries the simulator's per-point semantic labels.
+- Training (Ho et al.): ε-prediction, E_{t, ε} ||ε - ε_θ(√ᾱ_t x_0 + √(1 - ᾱ_t) ε, t)||², AdamW,
+  mirrored copies of every image (y -> -y), batches a pure function of (seed, step)
+  (:func:`tasks.training.run_loop`: resumable, a NaN loss stops with the last good checkpoint).
+  Weights: ``<out>/models/<name>/model.safetensors`` + ``config.json`` (with the run key: a
+  model whose key matches is loaded, not retrained).
+- Sampling: :func:`models.samplers.sample` with a stock diffusers scheduler on the model's
+  own β; the generated set of a (model, sampler, steps) is cached under ``<out>/samples/``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+import models.pixel_ddpm
+import models.samplers
+import models.schedules
+import models.time_embedding
+from models.pixel_ddpm import PixelDiffusion
+from models.samplers import make_scheduler, sample
+from models.schedules import alphas_cumprod, betas
+from tasks.stage1 import noised_batch
+from tasks.training import (batch_rng, grad_norm, load_weights, run_checkpoint_dir, run_loop, save_weights,
+                            seed_everything)
+from typ import distributed
+from typ.config import DdpmConfig, DdpmRunConfig, as_dict
+from typ.errors import TypError
+from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene
+from typ.io import atomic_path, code_digest, hash_obj, read_json_or_none
+from typ.projection import (RangeLayout, bev_image, bev_to_points, from_unit, range_image, range_pixels,
+                            range_to_points, to_unit)
+from typ.sim import domain_spec
+from typ.voxel import Grid
+
+STAGE = "ddpm"
+#: the code a trained model / a generated set depends on: part of their cache keys
+_MODEL_CODE = code_digest(models.pixel_ddpm, models.time_embedding, models.schedules)
+_SAMPLER_CODE = code_digest(models.samplers)
+#: samples drawn per reverse-process call (bounds memory at paper scale)
+SAMPLE_BATCH = 32
+#: Pixels live in [-1, 1], so every sampler clips its x̂_0 estimate there at each step (Ho et al.
+#: clip; diffusers' default for pixel models, which typ's latent samplers switch off). Without
+#: it an undertrained ε̂ at t near T, divided by √ᾱ_T ~ 0.006, throws the first estimates far
+#: outside the image range and the chain never recovers. Dynamic thresholding with a maximum of 1
+#: is the same clip for the multistep solvers.
+PIXEL_CLIP = {"ddpm": {"clip_sample": True}, "ddim": {"clip_sample": True},
+              "dpmsolver++": {"thresholding": True, "sample_max_value": 1.0},
+              "unipc": {"thresholding": True, "sample_max_value": 1.0}}
+
+
+# ---------------------------------------------------------------- scans
+
+
+@dataclass
+class Scan:
+    """One view: ``key = (scenario, agent, timestamp)``, (N, 4) float32 points in its sensor
+    frame, (N,) uint8 semantic codes (None for data without point labels)."""
+
+    key: tuple[str, str, str]
+    points: np.ndarray
+    semantics: np.ndarray | None
+
+
+def load_scans(sim_root: Path, *, domain: str, split: str, ego_only: bool) -> list[Scan]:
+    """Every (scenario, agent, timestamp) view of ``sim_root/domain/split``, sorted."""
+    folder = sim_root / domain / split
+    if not folder.is_dir():
+        raise TypError(folder, f"{domain}/{split}", "simulated scenarios of that domain and split "
+                       "(simulate.scenarios; run: dvc repro simulate)", "no such folder")
+    scans = []
+    for scenario in list_scenarios(folder):
+        agents = list_agents(scenario)
+        for ts in list_timestamps(scenario):
+            scene = read_scene(scenario, ts, agents=agents[:1] if ego_only else agents)
+            for agent_id, view in scene.agents.items():
+                scans.append(Scan((scenario.name, agent_id, ts), view.points, view.semantics))
+    if not scans:
+        raise TypError(folder, f"{domain}/{split}", "at least one scan", "none")
+    return scans
+
+
+# ---------------------------------------------------------------- representations
+
+
+@dataclass(frozen=True)
+class Representation:
+    """One LiDAR image of the paper: points <-> the [-1, 1] pixels the model sees.
+
+    Subclasses say how a cloud becomes an image and back (:mod:`typ.projection`), how the image
+    mirrors across the x axis, and how well the round trip keeps real scans.
+    """
+
+    name: str
+    layout: RangeLayout | Grid
+    patch: tuple[int, int]
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(C, H, W) of the model's pixels."""
+        raise NotImplementedError
+
+    def image(self, points: np.ndarray) -> np.ndarray:
+        """The physical image of a non-empty cloud."""
+        raise NotImplementedError
+
+    def empty_image(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def image_points(self, image: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`image` for a canonical image."""
+        raise NotImplementedError
+
+    def mirror_index(self, width: int) -> np.ndarray:
+        """Column order of the image of the cloud mirrored across the x axis (y -> -y)."""
+        raise NotImplementedError
+
+    def round_trip(self, scans: list["Scan"]) -> dict:
+        raise NotImplementedError
+
+    def pixels(self, points: np.ndarray) -> np.ndarray:
+        """(N, >=3) points -> (C, H, W) float32 pixels in [-1, 1]; an empty cloud gives an empty image."""
+        return to_unit(self.image(points) if len(points) else self.empty_image(), self.layout)
+
+    def points(self, pixels: np.ndarray) -> np.ndarray:
+        """(C, H, W) model pixels -> (M, 3) float32 points (canonicalised first, see from_unit)."""
+        return self.image_points(from_unit(pixels, self.layout))
+
+    def mirror(self, pixels: np.ndarray) -> np.ndarray:
+        """Pixels of the scan mirrored across the x axis (y -> -y)."""
+        return pixels[..., self.mirror_index(pixels.shape[-1])]
+
+    def describe(self) -> dict:
+        return {"name": self.name, "layout": self.layout.to_dict(), "patch": list(self.patch),
+                "shape": list(self.shape)}
+
+
+class RangeRepresentation(Representation):
+    """The equirectangular range image (1 channel: depth)."""
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (1, *self.layout.shape)
+
+    def image(self, points: np.ndarray) -> np.ndarray:
+        return range_image(points, self.layout)
+
+    def empty_image(self) -> np.ndarray:
+        return np.zeros(self.layout.shape, np.float32)
+
+    def image_points(self, image: np.ndarray) -> np.ndarray:
+        return range_to_points(image, self.layout)
+
+    def mirror_index(self, width: int) -> np.ndarray:
+        return (width - np.arange(width)) % width  # azimuth φ_c -> -φ_c
+
+    def round_trip(self, scans: list["Scan"]) -> dict:
+        """Share of points with a pixel of their own (the rest shared one with a nearer point) and
+        each kept point's reconstruction error, also against the guaranteed bound
+        (:meth:`typ.projection.RangeLayout.error_bound`; 1 = at the bound)."""
+        layout, kept, inside, worst, errors = self.layout, 0, 0, 0.0, []
+        for s in scans:
+            px = range_pixels(s.points, layout)
+            # range_to_points returns pixels in row-major order: sort the kept points the same way
+            order = np.flatnonzero(px.winner)
+            order = order[np.argsort(px.row[order] * layout.width + px.col[order])]
+            back = range_to_points(range_image(s.points, layout), layout)
+            err = np.linalg.norm(back.astype(np.float64) - s.points[order, :3].astype(np.float64), axis=1)
+            worst = max(worst, float((err / layout.error_bound(px.depth[order], px.row[order])).max()))
+            errors.append(err)
+            kept, inside = kept + px.kept, inside + px.inside
+        err = np.concatenate(errors)
+        return {"points_kept": round(kept / max(inside, 1), 4), "median_error_m": float(np.median(err)),
+                "max_error_m": float(err.max()), "max_error_over_bound": worst}
+
+
+class BevRepresentation(Representation):
+    """The BEV image (2 channels: occupancy, height of the highest point)."""
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (2, self.layout.shape[0], self.layout.shape[1])
+
+    def image(self, points: np.ndarray) -> np.ndarray:
+        return bev_image(points, self.layout)
+
+    def empty_image(self) -> np.ndarray:
+        img = np.zeros(self.shape, np.float32)
+        img[1] = self.layout.z_range[0]
+        return img
+
+    def image_points(self, image: np.ndarray) -> np.ndarray:
+        return bev_to_points(image, self.layout)
+
+    def mirror_index(self, width: int) -> np.ndarray:
+        return np.arange(width)[::-1]  # y_j -> -y_j on a grid symmetric in y
+
+    def round_trip(self, scans: list["Scan"]) -> dict:
+        """Share of points that are the highest of their cell (the rest lie below it); the kept
+        ones come back within half a cell in x and y, exactly in z."""
+        kept = sum(int(bev_image(s.points, self.layout)[0].sum()) for s in scans)
+        return {"points_kept": round(kept / max(sum(len(s.points) for s in scans), 1), 4)}
+
+
+def representations(cfg: DdpmConfig, where: str = "params.yaml") -> dict[str, Representation]:
+    """``range``: the domain sensor's beams x ``range_image.azimuth_bins``; ``bev``: ``bev.grid``."""
+    layout = RangeLayout.from_sensor(domain_spec(cfg.domain).sensor, cfg.range_image.azimuth_bins)
+    factor = 2 ** (len(cfg.unet.block_out_channels) - 1)
+    ph, pw = cfg.range_image.patch
+    if layout.height % ph or (layout.height // ph) % factor:
+        raise TypError(where, "ddpm.range_image.patch", f"a block whose height divides the {layout.height} beams "
+                       f"into a multiple of 2^(levels-1) = {factor}", [ph, pw])
+    g = cfg.bev.grid
+    if g.y_range[0] != -g.y_range[1]:
+        raise TypError(where, "ddpm.bev.grid.y_range", "a range symmetric about 0 (training mirrors y -> -y)",
+                       list(g.y_range))
+    grid = Grid(g.x_range, g.y_range, g.z_range, g.shape)
+    return {"range": RangeRepresentation("range", layout, tuple(cfg.range_image.patch)),
+            "bev": BevRepresentation("bev", grid, tuple(cfg.bev.patch))}
+
+
+def pixel_set(rep: Representation, scans: list[Scan], *, mirror: bool = False) -> torch.Tensor:
+    """(N, C, H, W) float32 pixels of every scan (then every mirrored scan when ``mirror``)."""
+    x = np.stack([rep.pixels(s.points) for s in scans])
+    if mirror:
+        x = np.concatenate([x, rep.mirror(x)])
+    return torch.from_numpy(np.ascontiguousarray(x))
+
+
+def data_key(scans: list[Scan]) -> list:
+    """What identifies a training set in run keys: its view keys and point counts."""
+    return [[*s.key, int(len(s.points))] for s in scans]
+
+
+# ---------------------------------------------------------------- models
+
+
+def model_name(run: DdpmRunConfig, seed: int) -> str:
+    """Folder / MLflow name of one trained model: shared by configurations that train the same."""
+    return f"{run.representation}-{run.schedule}-{run.embedding}-seed{seed}"
+
+
+def build(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation) -> PixelDiffusion:
+    c, h, w = rep.shape
+    u = cfg.unet
+    return PixelDiffusion(channels=c, height=h, width=w, patch=rep.patch, block_out_channels=u.block_out_channels,
+                          layers_per_block=u.layers_per_block, norm_num_groups=u.norm_num_groups, dropout=u.dropout,
+                          time_embedding=run.embedding, harmonics=u.harmonics, coordinates=u.coordinates)
+
+
+def model_key(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: int, data: list) -> str:
+    recipe = {"unet": as_dict(cfg.unet), "T": cfg.train_timesteps, "steps": cfg.steps, "batch": cfg.batch_size,
+              "lr": cfg.lr, "schedule": run.schedule, "embedding": run.embedding, "rep": rep.describe(),
+              "seed": seed, "data": data, "code": _MODEL_CODE}
+    return hash_obj(recipe)[:16]
+
+
+@dataclass
+class TrainedModel:
+    name: str
+    key: str
+    model: PixelDiffusion
+    schedule: str
+    train_timesteps: int
+    seconds_training: float
+    trained: bool
+
+
+def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: int, pixels: torch.Tensor,
+                data: list, *, out: Path, log_fn: Callable[[dict, int], None]) -> TrainedModel:
+    """Train one model (or load it, when ``<out>/models/<name>`` holds the same run key).
+
+    pixels: (N, C, H, W) training images in [-1, 1] (mirrored copies included).
+    """
+    name = model_name(run, seed)
+    key = model_key(cfg, run, rep, seed, data)
+    folder = out / "models" / name
+    saved = read_json_or_none(folder / "config.json")
+    if saved is not None and saved.get("key") == key:
+        state, saved = load_weights(folder, STAGE)
+        model = PixelDiffusion.from_config(saved["model"])
+        model.load_state_dict(state)
+        return TrainedModel(name, key, model.eval(), saved["schedule"], saved["train_timesteps"],
+                            saved["seconds_training"], trained=False)
+    seed_everything(seed)
+    model = build(cfg, run, rep)
+    abar = torch.from_numpy(alphas_cumprod(betas(run.schedule, cfg.train_timesteps))).float()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
+
+    def step_fn(step: int) -> dict[str, float]:
+        rng = batch_rng(seed, step)
+        _, t, eps, x_t = noised_batch(rng, pixels, abar, cfg.batch_size)
+        # dropout draws from torch's global generator: seed it per step, so a resumed run drops
+        # the same units an uninterrupted one would have
+        torch.manual_seed(int(rng.integers(2 ** 62)))
+        t, eps, x_t = distributed.local_batch(t, eps, x_t)
+        model.train()
+        loss = F.mse_loss(model(x_t, t), eps)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return {"loss": float(loss.detach()), "grad_norm": grad_norm(model.parameters())}
+
+    t0 = time.perf_counter()
+    with distributed.on_device(model):
+        run_loop(name=f"ddpm {name}", total_steps=cfg.steps, step_fn=step_fn,
+                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
+                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
+                 checkpoint_every=cfg.checkpoint_every,
+                 log_fn=lambda v, step: log_fn({f"ddpm.{name}.{k}": val for k, val in v.items()}, step))
+    seconds = round(time.perf_counter() - t0, 3)
+    if distributed.is_main():
+        save_weights(folder, model, {"key": key, "model": model.config, "schedule": run.schedule,
+                                     "train_timesteps": cfg.train_timesteps, "representation": rep.describe(),
+                                     "seconds_training": seconds})
+    return TrainedModel(name, key, model.eval(), run.schedule, cfg.train_timesteps, seconds, trained=True)
+
+
+# ---------------------------------------------------------------- sampling
+
+
+@dataclass
+class Generated:
+    """One generated set: (n, C, H, W) float32 pixels and the sampling wall time per sample."""
+
+    pixels: np.ndarray
+    seconds_per_sample: float
+
+
+def generate(trained: TrainedModel, sampler: str, steps: int, n: int, seed: int, *, out: Path) -> Generated:
+    """``n`` samples of ``trained`` with ``sampler`` at ``steps`` steps, x_T from ``seed``.
+
+    Cached under ``<out>/samples/`` by (model key, sampler, steps, n, seed) with the time it took,
+    so a resumed sweep skips finished sets. Time: wall clock of the reverse process, per sample.
+    """
+    key = hash_obj({"model": trained.key, "sampler": sampler, "steps": steps, "n": n, "seed": seed,
+                    "options": PIXEL_CLIP[sampler], "code": _SAMPLER_CODE})[:16]
+    path = out / "samples" / f"{trained.name}-{sampler}-{steps}-{key}.npz"
+    if path.exists():
+        with np.load(path) as cached:
+            return Generated(cached["pixels"], float(cached["seconds_per_sample"]))
+    scheduler = make_scheduler(sampler, betas(trained.schedule, trained.train_timesteps), **PIXEL_CLIP[sampler])
+    generator = torch.Generator().manual_seed(seed)
+    parts, t0 = [], time.perf_counter()
+    shape = tuple(trained.model.config[k] for k in ("channels", "height", "width"))
+    with distributed.on_device(trained.model) as device:  # x_T is drawn on the CPU whatever the device
+        for start in range(0, n, SAMPLE_BATCH):
+            m = min(SAMPLE_BATCH, n - start)
+            parts.append(sample(trained.model, scheduler, shape=(m, *shape), num_steps=steps, generator=generator,
+                                device=device).cpu().numpy())
+    seconds = (time.perf_counter() - t0) / n
+    pixels = np.concatenate(parts).astype(np.float32)
+    if not distributed.is_main():  # under torchrun every rank samples the same; rank 0 keeps it
+        return Generated(pixels, seconds)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, pixels=pixels, seconds_per_sample=seconds)
+    return Generated(pixels, seconds)
+
+
+def full_noise(rep: Representation, n: int, seed: int) -> np.ndarray:
+    """(n, C, H, W) pixels of pure N(0, I) noise: the paper's "Full noise" row."""
+    return np.random.default_rng(seed).standard_normal((n, *rep.shape)).astype(np.float32)
+
+
+def clouds(rep: Representation, pixels: np.ndarray) -> list[np.ndarray]:
+    """Generated (n, C, H, W) pixels -> n point clouds."""
+    return [rep.points(p) for p in pixels]
+
+
+def sample_rows(cfg: DdpmConfig) -> list[tuple[DdpmRunConfig, str, int]]:
+    """(configuration, sampler, steps) of every Table II row, in params order."""
+    return [(run, sampler, steps) for run in cfg.configs for sampler, steps in (run.samplers or cfg.samplers)]
+
+
+def seeds_of(cfg: DdpmConfig, run: DdpmRunConfig) -> tuple[int, ...]:
+    return run.seeds or cfg.seeds
+
+
+def sampling_seed(cfg: DdpmConfig, model_seed: int) -> int:
+    """x_T of every set of one model comes from one seed: rows of one model differ by sampler only."""
+    return int(np.random.SeedSequence([cfg.seed, model_seed, 7]).generate_state(1)[0])
+
+
+# ---------------------------------------------------------------- Table II
+
+
+def _row(route: str, rep: str, label: str, **fields) -> dict:
+    return {"route": route, "representation": rep, "config": label, "schedule": "", "embedding": "",
+            "sampler": "", "steps": 0, "seconds_per_sample": 0.0, "iou": None, **fields}
+
+
+def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], test: list[Scan], nets, *,
+          out: Path, log_fn: Callable[[dict, int], None]) -> tuple[list[dict], dict[str, TrainedModel], dict]:
+    """Train every model the configurations need, sample every (configuration, sampler) row for
+    every seed, and score it against the held-out scans passed through the same representation.
+
+    Per representation two reference rows come first: ``full noise`` (N(0, I) pixels decoded,
+    the paper's ceiling) and ``real train views`` (the training scans through the
+    representation: as close as the data itself is to the held-out set). Returns (rows,
+    trained models by name, example pixels by row label for the gallery).
+    """
+    from tasks.ddpm_metrics import score, set_stats
+
+    used = list(dict.fromkeys(run.representation for run in cfg.configs))
+    real, training, rows, examples = {}, {}, [], {}
+    for name in used:
+        rep = reps[name]
+        real[name] = set_stats([rep.points(rep.pixels(s.points)) for s in test], nets)
+        training[name] = pixel_set(rep, train, mirror=True)
+        examples[f"{name} real"] = pixel_set(rep, test[:2]).numpy()
+        noise = full_noise(rep, cfg.eval_samples, cfg.seed)
+        rows.append(_row("reference", name, "full noise",
+                         **score(real[name], [set_stats(clouds(rep, noise), nets)], n_boot=cfg.bootstrap, seed=cfg.seed)))
+        own = training[name][:len(train)].numpy()
+        rows.append(_row("reference", name, "real train views",
+                         **score(real[name], [set_stats(clouds(rep, own), nets)], n_boot=cfg.bootstrap, seed=cfg.seed)))
+    trained: dict[str, TrainedModel] = {}
+    data = data_key(train)
+    for run, sampler, steps in sample_rows(cfg):
+        rep = reps[run.representation]
+        stats, seconds = [], []
+        for seed in seeds_of(cfg, run):
+            name = model_name(run, seed)
+            if name not in trained:
+                trained[name] = train_model(cfg, run, rep, seed, training[run.representation], data, out=out,
+                                            log_fn=log_fn)
+            made = generate(trained[name], sampler, steps, cfg.eval_samples, sampling_seed(cfg, seed), out=out)
+            stats.append(set_stats(clouds(rep, made.pixels), nets))
+            seconds.append(made.seconds_per_sample)
+            examples.setdefault(f"{run.representation} {run.name} {sampler}-{steps}", made.pixels[:2])
+        rows.append(_row("pixel", run.representation, run.name, schedule=run.schedule, embedding=run.embedding,
+                         sampler=sampler, steps=steps, seconds_per_sample=float(np.mean(seconds)),
+                         seeds=list(seeds_of(cfg, run)),
+                         **score(real[run.representation], stats, n_boot=cfg.bootstrap, seed=cfg.seed)))
+    return rows, trained, examples
+
+
+def latent_sampler(cfg, root: Path, views) -> tuple[Callable[[str, int], np.ndarray], dict]:
+    """The one place that knows how TYP's generator is loaded and called (adapt it here when the
+    generator's API changes): stage 1 with its VQ-VAEs and tuned post-processing, conditioned on
+    ``views``' own box maps. Returns (sample(sampler, steps) -> (N, C, H, W) bool occupancy,
+    {"schedule", "embedding"} of the model)."""
+    from models.postprocess import postprocess
+    from tasks import stage1
+    from tasks.vqvae import load_model as load_vqvae
+
+    latent = cfg.ddpm.latent
+    model, saved = stage1.load_model(stage1.replica_dir(root / latent.stage1, cfg.stage1.seed))
+    x_vq, y_vq = (load_vqvae(root / latent.vqvae / k) for k in ("x", "y"))
+    _, y_lat = stage1.encode_views(x_vq, y_vq, views)
+    thresholds = saved["postprocess"]
+
+    def sample_occupancy(sampler: str, steps: int) -> np.ndarray:
+        sampling = stage1.sampling_config(cfg.stage1, saved, sampler, steps)
+        seed = cfg.ddpm.seed
+        logits = stage1.sample_logits(model, x_vq, y_lat, cfg=sampling, generator=torch.Generator().manual_seed(seed))
+        return postprocess(logits, low=thresholds["low"], high=thresholds["high"], noise_std=thresholds["noise_std"],
+                           generator=torch.Generator().manual_seed(seed)).numpy()
+
+    return sample_occupancy, {"schedule": saved["schedule"], "embedding": model.config["time_embedding"]}
+
+
+def latent_route(cfg, root: Path, nets) -> list[dict]:
+    """TYP's latent route on the same held-out views: its generator (:func:`latent_sampler`)
+    sampled with each ``ddpm.latent.samplers`` entry for the first ``latent.views`` test views,
+    conditioned on their own box maps; scored against the true views' voxel centres (its
+    representation), with voxel IoU to the truth. One trained model: the intervals cover the
+    sample spread only. ``cfg``: the whole :class:`typ.config.Config`.
+    """
+    from tasks.ddpm_metrics import score, set_stats
+    from tasks.voxel_data import load_views
+    from typ.metrics import occupancy_iou
+    from typ.voxel import voxel_centers
+
+    block, latent = cfg.ddpm, cfg.ddpm.latent
+    views = load_views(root / latent.voxels, dataset=block.domain, split=block.test_split, ego_only=False)
+    views = views.head(latent.views)
+    x_true, _ = views.batch(np.arange(len(views)))
+    truth = x_true.numpy() > 0.5
+    sample_occupancy, model = latent_sampler(cfg, root, views)
+
+    def centres(occupancy: np.ndarray) -> list[np.ndarray]:
+        return [voxel_centers(o.transpose(1, 2, 0), views.grid).astype(np.float32) for o in occupancy]
+
+    real = set_stats(centres(truth), nets)
+    rows = []
+    for sampler, steps in latent.samplers:
+        t0 = time.perf_counter()
+        occupancy = sample_occupancy(sampler, steps)
+        seconds = (time.perf_counter() - t0) / len(views)
+        rows.append(_row("latent", "voxel", "TYP stage 1", **model, sampler=sampler, steps=steps,
+                         seconds_per_sample=seconds, seeds=[0], iou=float(occupancy_iou(occupancy, truth)["iou"]),
+                         **score(real, [set_stats(centres(occupancy), nets)], n_boot=block.bootstrap, seed=block.seed)))
+    return rows
+
+
+DESCRIPTION = (
+    "Aghanouri & Olaverri-Monreal's LiDAR DDPM rebuilt in typ: a lightweight pixel-space U-Net DDPM "
+    "(`models/pixel_ddpm.py`, ε-prediction, dropout 0.1, AdamW) on the equirectangular range image "
+    "(the target sensor's beams x azimuth bins, depth normalised to [-1, 1]) and on the BEV image "
+    "(occupancy + height of the highest point per cell), trained on the simulated target domain. "
+    "Rows are Table I configurations (schedule x time embedding; the paper's dataset column is the one "
+    "simulated target domain here, so its I = H and K = J) sampled with the samplers listed; every "
+    "sampler clips x̂_0 to the image range at each step.")
+
+
+def round_trips(reps: dict[str, Representation], scans: list[Scan]) -> dict:
+    """:meth:`Representation.round_trip` of every representation, with its image size."""
+    return {name: {"layout": "x".join(map(str, rep.shape[1:])), **rep.round_trip(scans)}
+            for name, rep in reps.items()}
+
+
+def context(cfg: DdpmConfig, train: list[Scan], test: list[Scan]) -> dict:
+    """What the report says about the data and the estimator."""
+    return {"description": DESCRIPTION, "train_scans": len(train), "test_scans": len(test),
+            "train_split": cfg.train_split, "test_split": cfg.test_split, "ego_only": cfg.ego_only,
+            "eval_samples": cfg.eval_samples, "bootstrap": cfg.bootstrap}
+
+
+def model_summary(trained: dict[str, TrainedModel]) -> dict:
+    return {tm.name: {"seconds_training": tm.seconds_training, "trained_now": tm.trained,
+                      "parameters": sum(p.numel() for p in tm.model.parameters())} for tm in trained.values()}

@@ -1,0 +1,311 @@
+"""The ddpm stage's parts: model, config, training (resume, reuse, NaN guard), sampling, metrics, targets."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from models.pixel_ddpm import PixelDiffusion, fold, unfold
+from models.time_embedding import FourierTimeEmbedding
+from tasks import ddpm as stage
+from tasks.ddpm_metrics import score, set_stats
+from tasks.ddpm_report import targets
+from tasks.lidar_features import FeatureNets, build as build_net, voxel_labels
+from tasks.training import TrainingDiverged, load_weights, save_weights
+from typ.config import config_from_dict
+from typ.errors import TypError
+from typ.metrics import jsd_bev, mmd_bev
+from typ.metrics.interval import hierarchical_interval, mean_interval
+from typ.sim import simulate_scenario
+from typ.voxel import Grid
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SMALL = {"range_image": {"azimuth_bins": 64, "patch": [4, 4]},
+         "bev": {"grid": {"x_range": [-51.2, 51.2], "y_range": [-51.2, 51.2], "z_range": [-3.0, 7.0],
+                          "shape": [32, 32, 1]}, "patch": [2, 2]},
+         "unet": {"block_out_channels": [8, 16], "norm_num_groups": 8},
+         "steps": 6, "checkpoint_every": 2, "batch_size": 2, "eval_samples": 3, "bootstrap": 20,
+         "features": {"width": 4, "levels": 2, "steps": 2,
+                      "voxel_grid": {"x_range": [-51.2, 51.2], "y_range": [-51.2, 51.2], "z_range": [-3.0, 1.0],
+                                     "shape": [32, 32, 4]}}}
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return config_from_dict({"profile": "tiny", "ddpm": SMALL}).ddpm
+
+
+@pytest.fixture(scope="module")
+def scans():
+    out = []
+    for seed in (1, 2):
+        for scene in simulate_scenario(domain="target", seed=seed, n_frames=1, n_agents=2, azimuth_step_deg=2.0):
+            out += [stage.Scan((scene.scenario, a, scene.timestamp), v.points, v.semantics)
+                    for a, v in scene.agents.items()]
+    return out
+
+
+@pytest.fixture(scope="module")
+def nets(cfg):
+    torch.manual_seed(0)
+    reps = stage.representations(cfg)
+    g = cfg.features.voxel_grid
+    grid = Grid(g.x_range, g.y_range, g.z_range, g.shape)
+    return FeatureNets(build_net("range", cfg.features, grid), build_net("voxel", cfg.features, grid),
+                       reps["range"].layout, grid)
+
+
+def test_fold_is_a_lossless_reshape():
+    x = torch.randn(2, 3, 8, 12)
+    assert torch.equal(unfold(fold(x, 2, 4), 2, 4), x)
+    assert fold(x, 2, 4).shape == (2, 24, 4, 3)
+    assert torch.equal(fold(x, 2, 4)[0, :8, 0, 0], x[0, 0, :2, :4].reshape(-1))
+
+
+@pytest.mark.parametrize("embedding", ["sinusoidal", "fourier"])
+def test_pixel_unet_predicts_every_pixel_and_rebuilds_from_its_config(embedding):
+    torch.manual_seed(0)
+    model = PixelDiffusion(channels=2, height=16, width=32, patch=(2, 4), block_out_channels=(8, 16),
+                           time_embedding=embedding, harmonics=3).eval()
+    assert isinstance(model.unet.time_proj, FourierTimeEmbedding) == (embedding == "fourier")
+    x = torch.randn(3, 2, 16, 32)
+    out = model(x, torch.tensor([0, 500, 999]))
+    assert out.shape == x.shape and torch.isfinite(out).all()
+    again = PixelDiffusion.from_config(model.config)
+    again.load_state_dict(model.state_dict())
+    assert torch.equal(again.eval()(x, torch.tensor([0, 500, 999])), out)
+    with pytest.raises(ValueError, match="fold"):
+        PixelDiffusion(channels=1, height=18, width=32, patch=(4, 4), block_out_channels=(8, 16))
+
+
+def test_paper_profile_expresses_table_one():
+    c = config_from_dict({"profile": "paper"}).ddpm
+    rows = {(r.name, r.representation): r for r in c.configs}
+    assert {n for n, _ in rows} == {"A", "B", "C", "D", "E*", "F", "G", "H", "J"}
+    expected = {"A": ("linear", "sinusoidal"), "B": ("linear", "fourier"), "C": ("hyperbolic", "fourier"),
+                "D": ("hyperbolic", "sinusoidal"), "E*": ("ramp", "fourier"), "F": ("ramp", "fourier"),
+                "G": ("ramp", "sinusoidal"), "H": ("time_dependent", "sinusoidal"), "J": ("time_dependent", "fourier")}
+    for (name, rep), run in rows.items():
+        assert (run.schedule, run.embedding) == expected[name]
+    assert rows[("E*", "range")].samplers == (("ddpm", 800),) and c.samplers == (("ddpm", 1000),)
+    assert c.range_image.azimuth_bins == 1024 and c.bev.grid.shape == (1024, 1024, 1) and c.seeds == (0, 1, 2)
+    # E* and F train one model: the same name
+    assert stage.model_name(rows[("E*", "range")], 0) == stage.model_name(rows[("F", "range")], 0)
+
+
+@pytest.mark.parametrize("override,field", [
+    ({"configs": [{"name": "J", "representation": "range", "schedule": "cubic", "embedding": "fourier"}]},
+     "ddpm.configs[0].schedule"),
+    ({"configs": [{"name": "J", "representation": "range", "schedule": "linear", "embedding": "learned"}]},
+     "ddpm.configs[0].embedding"),
+    ({"configs": [{"name": "J", "representation": "range", "schedule": "linear", "embedding": "fourier"},
+                  {"name": "J", "representation": "range", "schedule": "ramp", "embedding": "fourier"}]},
+     "ddpm.configs[1]"),
+    ({"samplers": [["ddpm", 1001]]}, "ddpm.samplers[0]"),
+    ({"samplers": [["heun", 10]]}, "ddpm.samplers[0][0]"),
+    ({"bev": {"grid": {"shape": [128, 128, 2]}}}, "ddpm.bev.grid.shape"),
+    ({"bev": {"patch": [3, 3]}}, "ddpm.bev.patch"),
+    ({"eval_samples": 1}, "ddpm.eval_samples"),
+    ({"unet": {"dropout": 1.5}}, "ddpm.unet.dropout"),
+])
+def test_bad_params_name_their_field(override, field):
+    with pytest.raises(TypError, match=field.replace("[", r"\[").replace("]", r"\]").replace("*", r"\*")):
+        config_from_dict({"profile": "tiny", "ddpm": override})
+
+
+def test_range_patch_must_fold_the_sensors_beams(cfg):
+    bad = dataclasses.replace(cfg, range_image=dataclasses.replace(cfg.range_image, patch=(3, 4)))
+    with pytest.raises(TypError, match="ddpm.range_image.patch"):
+        stage.representations(bad)
+
+
+def test_mirrored_pixels_are_the_pixels_of_the_mirrored_scan(cfg, scans):
+    for rep in stage.representations(cfg).values():
+        pts = scans[0].points
+        flipped = pts * np.array([1, -1, 1, 1], np.float32)
+        a, b = rep.mirror(rep.pixels(pts)), rep.pixels(flipped)
+        assert np.mean(np.abs(a - b) > 1e-4) < 0.002, rep.name  # bins at exactly +-pi/2 may round either way
+
+
+def test_metrics_equal_typ_metrics_on_the_full_sets(cfg, scans, nets):
+    real = [s.points for s in scans[:2]]
+    fake = [s.points[::3] + np.float32([1.0, 0.5, 0.0, 0.0]) for s in scans[2:]]
+    out = score(set_stats(real, nets), [set_stats(fake, nets)], n_boot=20, seed=0)
+    assert out["jsd"][0] == pytest.approx(jsd_bev(real, fake, preset="r2dm"), rel=1e-12)
+    assert out["mmd"][0] == pytest.approx(mmd_bev(real, fake, preset="r2dm"), rel=1e-9, abs=1e-15)
+    for m in ("jsd", "mmd", "frid", "fpvd"):
+        assert out[m][1] <= out[m][2] and all(np.isfinite(out[m]))
+    same = score(set_stats(real, nets), [set_stats(real, nets)], n_boot=20, seed=0)
+    assert same["jsd"][0] == 0.0 and same["frid"][0] == pytest.approx(0.0, abs=1e-9)
+    assert same["spread"] == pytest.approx(1.0)
+
+
+def test_empty_generated_clouds_are_counted_not_fatal(scans, nets):
+    real = [s.points for s in scans[:2]]
+    fake = [np.zeros((0, 3), np.float32), scans[2].points]
+    out = score(set_stats(real, nets), [set_stats(fake, nets)], n_boot=20, seed=0)
+    assert out["empty"] == 1 and np.isfinite(out["jsd"][0]) and np.isfinite(out["mmd"][0])
+
+
+def test_intervals():
+    assert mean_interval([2.0]) == (2.0, 2.0, 2.0)
+    mean, lo, hi = mean_interval([1.0, 2.0, 3.0, 10.0], seed=3)
+    assert mean == 4.0 and 1.0 <= lo < mean < hi <= 10.0
+    assert mean_interval([1.0, 2.0, 3.0, 10.0], seed=3) == (mean, lo, hi)
+    # a metric that is the mean of the chosen samples: the interval covers the spread of that mean
+    values = [np.array([0.0, 1.0, 2.0, 3.0]), np.array([10.0, 11.0, 12.0, 13.0])]
+    est, lo, hi = hierarchical_interval(lambda s, g, r: float(values[s][g].mean()), [4, 4], 5, n_boot=500)
+    assert est == pytest.approx(6.5) and lo < 2.0 and hi > 11.0
+    with pytest.raises(TypError, match="values"):
+        mean_interval([float("nan")])
+
+
+def test_voxel_labels_take_the_majority_class():
+    grid = Grid((0, 2), (0, 2), (0, 1), (2, 2, 1))
+    pts = np.array([[0.1, 0.1, 0.5], [0.2, 0.2, 0.5], [0.3, 0.3, 0.5], [1.5, 1.5, 0.5], [1.6, 1.6, 0.5]], np.float32)
+    labels = voxel_labels(pts, np.array([3, 1, 3, 2, 4], np.uint8), grid)
+    assert labels.shape == (1, 2, 2)
+    assert labels[0, 0, 0] == 3 and labels[0, 1, 1] == 2 and labels[0, 0, 1] == 255  # a tie goes to the lower code
+
+
+def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
+    reps = stage.representations(cfg)
+    run = cfg.configs[0]
+    x = stage.pixel_set(reps[run.representation], scans, mirror=True)
+    data = stage.data_key(scans)
+    logged = []
+    first = stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "a",
+                              log_fn=lambda v, s: logged.append(s))
+    assert first.trained and logged == list(range(cfg.steps))
+    again = stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "a", log_fn=print)
+    assert not again.trained
+    for k, v in first.model.state_dict().items():
+        assert torch.equal(v, again.model.state_dict()[k])
+    # a run killed after its step-4 checkpoint resumes there and ends with the same weights
+    interrupted = dataclasses.replace(cfg, steps=4)
+    stage.train_model(interrupted, run, reps[run.representation], 0, x, data, out=tmp_path / "b", log_fn=print)
+    key = stage.model_key(cfg, run, reps[run.representation], 0, data)
+    name = stage.model_name(run, 0)
+    (tmp_path / "b" / "checkpoints" / name / stage.model_key(interrupted, run, reps[run.representation], 0, data)).rename(
+        tmp_path / "b" / "checkpoints" / name / key)
+    resumed_steps = []
+    resumed = stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "b",
+                                log_fn=lambda v, s: resumed_steps.append(s))
+    assert resumed_steps == [4, 5]
+    for k, v in first.model.state_dict().items():
+        assert torch.equal(v, resumed.model.state_dict()[k]), k
+    with pytest.raises(TrainingDiverged, match="loss"):
+        stage.train_model(cfg, run, reps[run.representation], 0, torch.full_like(x, float("nan")), data,
+                          out=tmp_path / "c", log_fn=print)
+    assert not (tmp_path / "c" / "models").exists()
+
+
+def test_damaged_weights_name_the_file_and_the_stage(tmp_path):
+    net = torch.nn.Linear(2, 2)
+    save_weights(tmp_path, net, {"key": "k"})
+    state, config = load_weights(tmp_path, "ddpm")
+    assert config == {"key": "k"} and torch.equal(state["weight"], net.weight)
+    (tmp_path / "model.safetensors").write_bytes(b"\x00" * 20)
+    with pytest.raises(TypError, match=r"model.safetensors: weights: expected a complete safetensors file from the ddpm"):
+        load_weights(tmp_path, "ddpm")
+    (tmp_path / "model.safetensors").unlink()
+    with pytest.raises(TypError, match="dvc repro ddpm"):
+        load_weights(tmp_path, "ddpm")
+
+
+def test_sampling_is_seeded_and_cached(cfg, scans, tmp_path):
+    reps = stage.representations(cfg)
+    run = cfg.configs[1]  # bev
+    x = stage.pixel_set(reps["bev"], scans, mirror=True)
+    trained = stage.train_model(cfg, run, reps["bev"], 0, x, stage.data_key(scans), out=tmp_path, log_fn=print)
+    a = stage.generate(trained, "dpmsolver++", 3, 2, seed=5, out=tmp_path)
+    assert a.pixels.shape == (2, 2, 32, 32) and np.abs(a.pixels).max() <= 1.0 + 1e-6  # x̂_0 clipped each step
+    cached = stage.generate(trained, "dpmsolver++", 3, 2, seed=5, out=tmp_path)
+    assert np.array_equal(a.pixels, cached.pixels) and cached.seconds_per_sample == a.seconds_per_sample
+    for f in (tmp_path / "samples").iterdir():
+        f.unlink()
+    assert np.array_equal(stage.generate(trained, "dpmsolver++", 3, 2, seed=5, out=tmp_path).pixels, a.pixels)
+    other = stage.generate(trained, "dpmsolver++", 3, 2, seed=6, out=tmp_path)
+    assert not np.array_equal(other.pixels, a.pixels)
+    assert all(len(c) >= 0 for c in stage.clouds(reps["bev"], a.pixels))
+
+
+def _row(config, sampler, steps, jsd, frid, seconds, spread=0.8, rep="range", route="pixel"):
+    return {"route": route, "representation": rep, "config": config, "sampler": sampler, "steps": steps,
+            "seconds_per_sample": seconds, "jsd": jsd, "frid": frid, "mmd": [0, 0, 0], "fpvd": [0, 0, 0],
+            "spread": spread, "schedule": "", "embedding": "", "iou": None}
+
+
+def test_targets_are_judged_from_intervals():
+    rows = [_row("full noise", "", 0, [0.6, 0.58, 0.62], [900, 880, 920], 0.0, route="reference"),
+            _row("A", "ddpm", 1000, [0.30, 0.28, 0.32], [300, 290, 310], 6.0),
+            _row("B", "ddpm", 1000, [0.29, 0.27, 0.31], [290, 280, 300], 6.0),
+            _row("J", "ddpm", 1000, [0.20, 0.19, 0.21], [200, 190, 260], 6.0),
+            _row("J", "dpmsolver++", 20, [0.205, 0.19, 0.22], [210, 200, 220], 0.12),
+            _row("F", "ddpm", 1000, [0.25, 0.24, 0.26], [250, 240, 260], 6.0),
+            _row("E*", "ddpm", 800, [0.26, 0.25, 0.27], [255, 245, 265], 4.8)]
+    by = {t["figure"]: t for t in targets(rows)}
+    j = by["range: J (time-dependent + Fourier) vs A/B (linear + sinusoidal/Fourier)"]
+    assert j["met"] is True
+    assert by["range: ramp at 800 steps (E*) vs 1000 (F)"]["met"] is True      # +4 %, 0.8x
+    assert by["range J: fast solver ≤ 50 steps vs DDPM-1000"]["met"] is True    # +2.5 %, 50x
+    assert by["range: samples vs noise (not flat)"]["met"] is True
+    rows[3]["frid"] = [280, 250, 295]  # J's FRID interval now overlaps B's
+    assert targets(rows)[0]["met"] is False
+    rows[-1]["jsd"] = [0.27, 0.26, 0.28]  # +8 %
+    assert {t["figure"]: t for t in targets(rows)}["range: ramp at 800 steps (E*) vs 1000 (F)"]["met"] is False
+    only_j = [r for r in rows if r["config"] in ("J", "full noise")]
+    assert {t["figure"]: t for t in targets(only_j)}[
+        "range: J (time-dependent + Fourier) vs A/B (linear + sinusoidal/Fourier)"]["met"] is None
+    assert not math.isnan(rows[0]["jsd"][0])
+
+
+def test_table_scores_every_row_against_the_same_held_out_scans(cfg, scans, nets, tmp_path):
+    small = dataclasses.replace(cfg, samplers=(("dpmsolver++", 2),), steps=2, seeds=(0, 1),
+                                configs=tuple(dataclasses.replace(r, samplers=()) for r in cfg.configs))
+    reps = stage.representations(small)
+    rows, trained, examples = stage.table(small, reps, scans[:3], scans[3:] + scans[:1], nets, out=tmp_path,
+                                          log_fn=lambda v, s: None)
+    names = [(r["representation"], r["config"], r["sampler"]) for r in rows]
+    assert names == [("range", "full noise", ""), ("range", "real train views", ""),
+                     ("bev", "full noise", ""), ("bev", "real train views", ""),
+                     ("range", "J", "dpmsolver++"), ("bev", "J", "dpmsolver++")]
+    assert set(trained) == {f"{r}-time_dependent-fourier-seed{s}" for r in ("range", "bev") for s in (0, 1)}
+    for r in rows:
+        assert r["samples"] == ([3, 3] if r["route"] == "pixel" else [3] if r["config"] == "full noise" else [3])
+        assert all(r[m][1] <= r[m][2] for m in ("jsd", "mmd", "frid", "fpvd"))
+    # the train scans are closer to the held-out ones than pure noise is
+    by = {(r["representation"], r["config"]): r for r in rows}
+    for rep in ("range", "bev"):
+        assert by[(rep, "real train views")]["jsd"][0] < by[(rep, "full noise")]["jsd"][0]
+    assert {"range real", "bev real", "range J dpmsolver++-2", "bev J dpmsolver++-2"} == set(examples)
+
+
+def test_the_bench_sweep_is_a_valid_config_covering_table_one():
+    import importlib.util
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("bench_ddpm", repo / "bench" / "ddpm.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    sweep_params = bench.sweep_params
+
+    for mode in ({}, {"quick": True}, {"medium": True}):
+        params = sweep_params(repo, **mode)
+        cfg = config_from_dict(params).ddpm
+        assert Path(cfg.latent.stage1).is_absolute() and Path(cfg.latent.stage1).name == "stage1"
+    medium = config_from_dict(sweep_params(repo, medium=True))
+    assert {(r.name, r.schedule, r.embedding) for r in medium.ddpm.configs} == {
+        ("J", "time_dependent", "fourier"), ("A", "linear", "sinusoidal")}
+    assert medium.simulate == config_from_dict({"profile": "tiny"}).simulate  # the tiny pipeline's data
+    full = config_from_dict(sweep_params(repo, quick=False)).ddpm
+    seeds = {r.name: len(r.seeds) for r in full.configs}
+    assert seeds == {"A": 3, "B": 3, "C": 1, "D": 1, "E*": 3, "F": 3, "G": 1, "H": 1, "J": 3}
+    rows = {(r.name, s, n) for r, s, n in stage.sample_rows(full)}
+    assert ("E*", "ddpm", 800) in rows and ("F", "ddpm", 1000) in rows and ("J", "dpmsolver++", 20) in rows
+    # E* is F sampled with fewer steps: one set of trained models
+    by = {r.name: r for r in full.configs}
+    assert stage.model_name(by["E*"], 1) == stage.model_name(by["F"], 1)
