@@ -19,7 +19,7 @@ from bad_inputs.make_corpus import CASES, KINDS, Case
 from test_crash_safety import stage_env
 from typ.errors import TypError
 
-READERS = {"binfile", "pcd", "opv2v", "kitti", "nuscenes", "waymo", "store", "voxel", "params", "cli"}
+READERS = {"binfile", "pcd", "opv2v", "kitti", "nuscenes", "waymo", "store", "voxel", "params", "cli", "artifact"}
 
 
 def snapshot(folder: Path) -> dict[str, bytes | None]:

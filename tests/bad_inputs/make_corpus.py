@@ -63,7 +63,7 @@ class Probe:
 
 @dataclass(frozen=True)
 class Case:
-    reader: str        # binfile, pcd, opv2v, kitti, nuscenes, waymo, store, voxel, params, cli
+    reader: str        # binfile, pcd, opv2v, kitti, nuscenes, waymo, store, voxel, params, cli, artifact
     name: str
     kind: str          # one of KINDS
     build: Callable[[Path], Probe] = field(repr=False, compare=False)
