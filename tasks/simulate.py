@@ -2,10 +2,10 @@
 from a real dataset (``simulate.sources``).
 
 Output: ``<out>/<domain>/<split>/<scenario>/<agent_id>/<timestamp>.pcd|.yaml`` (OPV2V layout,
-the ego is the first agent id in sorted order), beside them each simulated view's semantic
-occupancy ground truth ``<timestamp>_semantic_occupancy.npz`` (:mod:`typ.ssc`; real datasets
-bring their own or none), plus ``<scenario>/_typ.json``, the scenario's
-job key. A real dataset's scenarios (the first ``scenarios[domain][split]`` of each split
+the ego is the first agent id in sorted order), beside them the semantic occupancy ground
+truth ``<timestamp>_semantic_occupancy.npz`` of each view of the domains in
+``simulate.occupancy`` (:mod:`typ.ssc`; real datasets bring their own or none), plus
+``<scenario>/_typ.json``, the scenario's job key. A real dataset's scenarios (the first ``scenarios[domain][split]`` of each split
 folder, by name) are checked before anything is written (:func:`plan_jobs`: layout, yaml
 keys, pose format, agents; the first bad file is named) and their ``.pcd``/``.yaml`` files are
 hard-linked into the output (copied across file systems), so the later stages read them as
@@ -56,6 +56,8 @@ class ScenarioJob:
     azimuth_step_deg: float
     comm_range: float
     dt: float
+    #: also write each view's semantic occupancy ground truth (``SimulateConfig.occupancy``)
+    occupancy: bool = True
 
     @property
     def name(self) -> str:
@@ -75,12 +77,12 @@ class ScenarioJob:
         scenes = simulate_scenario(domain=self.domain, seed=self.seed, n_frames=self.n_frames,
                                    n_agents=self.n_agents, azimuth_step_deg=self.azimuth_step_deg,
                                    comm_range=self.comm_range, dt=self.dt, scenario=self.name, split=self.split)
-        maps = scene_occupancy(domain=self.domain, seed=self.seed, n_frames=self.n_frames, n_agents=self.n_agents,
-                               comm_range=self.comm_range, dt=self.dt)
+        maps = (scene_occupancy(domain=self.domain, seed=self.seed, n_frames=self.n_frames, n_agents=self.n_agents,
+                                comm_range=self.comm_range, dt=self.dt) if self.occupancy else [None] * len(scenes))
         for scene, frame_maps in zip(scenes, maps):
             # write_scene writes into a folder named like the scenario: name it after tmp
             write_scene(dataclasses.replace(scene, scenario=tmp.name), tmp)
-            for agent, labels in zip(scene.agents, frame_maps):
+            for agent, labels in zip(scene.agents, frame_maps or ()):
                 write_occupancy(occupancy_path(tmp, agent, scene.timestamp), labels)
         return {"frames": len(scenes), "views": sum(len(s.agents) for s in scenes),
                 "points": int(sum(len(a.points) for s in scenes for a in s.agents.values())),
@@ -162,7 +164,8 @@ def plan_jobs(cfg: SimulateConfig, *, root: Path = Path("."), out: Path | None =
                 frames, agents_min, agents_max = cfg.for_domain(domain)
                 n_agents = int(np.random.default_rng(ss).integers(agents_min, agents_max + 1))
                 jobs.append(ScenarioJob(domain, split, index, seed, n_agents, frames,
-                                        cfg.azimuth_step_deg, cfg.comm_range, cfg.dt))
+                                        cfg.azimuth_step_deg, cfg.comm_range, cfg.dt,
+                                        occupancy=domain in cfg.occupancy))
     return jobs
 
 

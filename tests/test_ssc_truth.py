@@ -15,7 +15,7 @@ from typ.metrics import SSC_CODE
 from typ.scene import SEMANTIC_CODE as SEM
 from typ.sim.mesh import MeshBuilder
 from typ.sim.solids import SolidsBuilder
-from typ.ssc import (SSC_GRID, SscGrid, occupancy_path, rasterize, read_occupancy, scene_occupancy,
+from typ.ssc import (SSC_GRID, SUFFIX, SscGrid, occupancy_path, rasterize, read_occupancy, scene_occupancy,
                      write_occupancy)
 
 ROAD, CAR, TERRAIN, BUILDING, VEG, POLE = (SSC_CODE[c] for c in ("road", "car", "terrain", "building", "vegetation", "pole"))
@@ -212,3 +212,33 @@ def test_simulate_writes_each_views_map_beside_its_cloud(tmp_path):
     for f, frame_maps in enumerate(maps):
         for agent, labels in zip(agents, frame_maps):
             assert np.array_equal(read_occupancy(occupancy_path(folder, agent, f"{f:06d}")), labels)
+
+
+def test_only_the_domains_in_simulate_occupancy_get_maps(tmp_path):
+    """tiny writes the maps for real_cav alone (SSC's domain): the other domains' jobs skip the
+    0.15-0.4 s a view, and a job without them writes the same clouds and no ``.npz``."""
+    import dataclasses
+
+    from tasks.simulate import ScenarioJob, plan_jobs
+    from typ.config import config_from_dict
+
+    cfg = config_from_dict({"profile": "tiny"}).simulate
+    jobs = plan_jobs(cfg)
+    assert cfg.occupancy == ("real_cav",)
+    assert {j.domain for j in jobs if j.occupancy} == {"real_cav"}
+    assert {j.domain for j in jobs if not j.occupancy} == {"source", "target"}
+    with_maps = ScenarioJob(domain="target", split="train", index=0, seed=5, n_agents=2, n_frames=1,
+                            azimuth_step_deg=2.0, comm_range=70.0, dt=0.1)
+    without = dataclasses.replace(with_maps, occupancy=False)
+    assert with_maps.key() != without.key()
+    for job, name in ((with_maps, "a"), (without, "b")):
+        (tmp_path / name).mkdir()
+        job.write(tmp_path / name)
+    files_a = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    files_b = sorted(p.relative_to(tmp_path / "b") for p in (tmp_path / "b").rglob("*") if p.is_file())
+    assert [f for f in files_a if not f.name.endswith(SUFFIX)] == files_b
+    assert len(files_a) - len(files_b) == 2 and not any(f.name.endswith(SUFFIX) for f in files_b)
+    for f in files_b:
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes()
+    with pytest.raises(TypError, match=r"params.yaml: simulate.occupancy: expected sensor domains"):
+        config_from_dict({"profile": "tiny", "simulate": {"occupancy": ["lidar"]}})

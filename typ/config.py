@@ -81,6 +81,9 @@ class SimulateConfig:
     sources: dict[str, str] = field(default_factory=dict)
     #: domain -> frames / agents_min / agents_max for that domain's scenarios
     domains: dict[str, DomainSimulation] = field(default_factory=dict)
+    #: the simulated domains whose views also get semantic occupancy ground truth (:mod:`typ.ssc`,
+    #: 0.15-0.4 s a view): only the domains that semantic scene completion trains and scores on
+    occupancy: tuple[str, ...] = ("real_cav",)
 
     def source_root(self, domain: str) -> str | None:
         """The real dataset root of ``domain``, or None when the simulator makes it."""
@@ -114,6 +117,9 @@ class SimulateConfig:
             for split, count in splits.items():
                 if count < 0:
                     raise TypError(where, f"{name}.scenarios.{domain}.{split}", "a count >= 0", count)
+        for domain in self.occupancy:
+            if domain not in DOMAINS:
+                raise TypError(where, f"{name}.occupancy", f"sensor domains in {list(DOMAINS)}", domain)
         for domain, source in self.sources.items():
             if domain not in DOMAINS:
                 raise TypError(where, f"{name}.sources.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
