@@ -46,3 +46,23 @@ def test_training_stages_read_no_held_out_split():
         for d in data:  # a split folder, never a whole store
             split = d.rsplit("/", 1)[-1].removeprefix("split=")
             assert split in ("train", "val"), (stage, d)
+
+
+@pytest.mark.parametrize("profile", ["tiny", "small", "paper"])
+def test_scoring_stages_depend_on_the_splits_their_config_reads(profile):
+    """generate, fusion and ddpm read a few split folders of the stores; depending on exactly those
+    (not on the whole of data/sim) keeps a new held-out target scene from re-running fusion."""
+    from tasks.fusion import Roots
+    from typ.config import config_from_dict
+
+    cfg = config_from_dict({"profile": profile})
+
+    def data(stage):
+        return {d for d in DVC[stage]["deps"] if d.startswith("data/")}
+
+    roots = Roots.from_config(cfg.fusion, ROOT)
+    assert data("fusion") == {str(p.relative_to(ROOT)) for p in vars(roots).values()}
+    assert data("generate") == {f"{cfg.generate.input}/{s.dataset}/{s.split}" for s in cfg.generate.sets}
+    d = cfg.ddpm
+    assert data("ddpm") == {f"{d.input}/{d.domain}/{d.train_split}", f"{d.input}/{d.domain}/{d.test_split}",
+                            f"{d.latent.voxels}/dataset={d.domain}/split={d.test_split}"}
