@@ -6,6 +6,7 @@ recomputes only that scenario; bad params stop the run before anything is touche
 """
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -33,9 +34,12 @@ SMALL = {
                "unet": {"block_out_channels": [16, 16, 16]}},
     "adapt": {"epochs": 1, "disc_width": 8, "checkpoint_every": 1, "eval_views": 2},
     "stage2": {"epochs": 1, "checkpoint_every": 1, "warmup_steps": 1, "resim": True, "one_stage": True},
-    "selftrain": {"epochs": 1, "checkpoint_every": 1, "pseudo_references": 2, "sample_steps": 2, "warmup_steps": 1},
+    # every Table 4 row and every fusion method (tiny trains fewer, for make run's budget): wiring
+    "selftrain": {"epochs": 1, "checkpoint_every": 1, "pseudo_references": 2, "sample_steps": 2, "warmup_steps": 1,
+                  "ablation": True},
     "generate": {"references_per_frame": 1, "sample_steps": 3, "max_distance": 50.0},
-    "fusion": {"steps": 2, "pretrain_steps": 2, "finetune_steps": 1, "warm_start_steps": 1, "checkpoint_every": 1,
+    "fusion": {"methods": ["none", "early", "late", "attfuse", "v2xvit"],
+               "steps": 2, "pretrain_steps": 2, "finetune_steps": 1, "warm_start_steps": 1, "checkpoint_every": 1,
                "seeds": 1, "bootstrap": 20,
                "robustness": {"position_std": [0.0, 0.2], "heading_std_deg": [0.0, 0.4], "delay_ms": [0, 100],
                               "quantization_bits": [8]}},
@@ -414,7 +418,9 @@ def test_adding_a_scenario_recomputes_only_that_one(project):
     (proj / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     old = proj / "data" / "sim" / "target" / "test" / "target_test_0000"
     old_bytes = {p: p.read_bytes() for p in old.rglob("*") if p.is_file()}
-    _run(["dvc", "repro"], proj, env)
+    ran = _run([str(VENV_BIN / "typ"), "with-server", "dvc", "repro"], proj, env)
+    # a held-out target scene: the stages that read target/test, no training stage, no fusion
+    assert re.findall(r"Running stage '(\w+)'", ran.stdout) == ["simulate", "voxelize", "ddpm", "evaluate"]
     sim = json.loads((proj / "metrics" / "simulate.json").read_text())
     vox = json.loads((proj / "metrics" / "voxelize.json").read_text())
     assert (sim["simulated"], sim["skipped_unchanged"]) == (1, 8)
