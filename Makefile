@@ -37,9 +37,10 @@ $(STAMP): requirements.txt requirements.lock pyproject.toml
 	  else echo "note: chromium is missing and we are not root; tests/test_mlflow_ui.py will be skipped"; fi; \
 	fi
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	# torch first, alone, so that nothing later can pull a CUDA build
-	$(BIN)/python -m pip install -q $(TORCH)
-	$(BIN)/python -m pip install -q -r requirements.txt -c requirements.lock
+	# torch first, alone, so that nothing later can pull a CUDA build. --no-compile: the modules
+	# typ imports are byte-compiled on first import, not the thousands it never imports
+	$(BIN)/python -m pip install -q --no-compile $(TORCH)
+	$(BIN)/python -m pip install -q --no-compile -r requirements.txt -c requirements.lock
 	$(BIN)/python -m pip install -q --no-deps $(WAYMO)
 	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
 	$(BIN)/python -c "import torch, open3d, prefect, mlflow, dvc; assert torch.__version__.startswith('2.13.0'), torch.__version__"
@@ -51,8 +52,11 @@ run: $(STAMP)
 	$(BIN)/typ with-server $(BIN)/dvc repro
 	$(BIN)/typ report
 
+# two pytest-xdist workers of one thread each, a file per worker at a time (module fixtures run
+# once): most long tests wait on servers and subprocesses, so two halve the wall time
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 # sampling needs the trained models of `make run` (artifacts/), pipeline its metrics (the
 # default data's skipping; its dvc runs are in a throwaway copy); voxelize needs nothing.

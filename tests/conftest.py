@@ -1,4 +1,6 @@
-"""Shared test settings: hypothesis runs derandomized in CI so a run is reproducible."""
+"""Shared test settings: hypothesis runs derandomized in CI so a run is reproducible; under
+pytest-xdist (``make test`` runs 2 workers) each worker and the processes it starts use one
+thread, and the long files are handed out first so that they do not end the run alone."""
 import os
 
 import pytest
@@ -17,3 +19,21 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+#: the files that take minutes (the pipeline end to end, the stages run as processes): first
+LONG_FILES = ("test_pipeline_e2e.py", "test_crash_safety.py", "test_real_data.py", "test_dask.py",
+              "test_deploy.py", "test_determinism.py", "test_server_lifecycle.py", "test_bad_inputs.py")
+
+
+def pytest_configure(config):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # two workers on two cores: a second OpenMP thread each would only thrash
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+            os.environ[var] = "1"
+        torch.set_num_threads(1)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))  # stable: file order kept otherwise
