@@ -16,7 +16,6 @@ from tasks.training import TrainingDiverged, load_weights, save_weights
 from typ.config import config_from_dict
 from typ.errors import TypError
 from typ.metrics import jsd_bev, mmd_bev
-from typ.metrics.interval import hierarchical_interval, mean_interval
 from typ.sim import simulate_scenario
 from typ.voxel import Grid
 
@@ -147,19 +146,6 @@ def test_empty_generated_clouds_are_counted_not_fatal(scans, nets):
     fake = [np.zeros((0, 3), np.float32), scans[2].points]
     out = score(set_stats(real, nets), [set_stats(fake, nets)], n_boot=20, seed=0)
     assert out["empty"] == 1 and np.isfinite(out["jsd"][0]) and np.isfinite(out["mmd"][0])
-
-
-def test_intervals():
-    assert mean_interval([2.0]) == (2.0, 2.0, 2.0)
-    mean, lo, hi = mean_interval([1.0, 2.0, 3.0, 10.0], seed=3)
-    assert mean == 4.0 and 1.0 <= lo < mean < hi <= 10.0
-    assert mean_interval([1.0, 2.0, 3.0, 10.0], seed=3) == (mean, lo, hi)
-    # a metric that is the mean of the chosen samples: the interval covers the spread of that mean
-    values = [np.array([0.0, 1.0, 2.0, 3.0]), np.array([10.0, 11.0, 12.0, 13.0])]
-    est, lo, hi = hierarchical_interval(lambda s, g, r: float(values[s][g].mean()), [4, 4], 5, n_boot=500)
-    assert est == pytest.approx(6.5) and lo < 2.0 and hi > 11.0
-    with pytest.raises(TypError, match="values"):
-        mean_interval([float("nan")])
 
 
 def test_voxel_labels_take_the_majority_class():
