@@ -1,5 +1,6 @@
 """The ddpm stage's parts: model, config, training (resume, reuse, NaN guard), sampling, metrics, targets."""
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ from tasks import ddpm as stage
 from tasks.ddpm_metrics import score, set_stats
 from tasks.ddpm_report import targets
 from tasks.lidar_features import FeatureNets, build as build_net, voxel_labels
-from tasks.training import TrainingDiverged, load_weights, save_weights
+from tasks.training import TrainingDiverged
 from typ.config import config_from_dict
 from typ.errors import TypError
 from typ.metrics import jsd_bev, mmd_bev
@@ -169,6 +170,18 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     assert not again.trained
     for k, v in first.model.state_dict().items():
         assert torch.equal(v, again.model.state_dict()[k])
+    # tasks.artifacts' layout: what rebuilds the model under "config", the run's fields beside it
+    folder = tmp_path / "a" / "models" / stage.model_name(run, 0)
+    saved = json.loads((folder / "config.json").read_text())
+    assert saved["config"] == first.model.config and saved["key"] == first.key
+    assert (saved["schedule"], saved["train_timesteps"]) == (run.schedule, cfg.train_timesteps)
+    # a damaged or missing weights file of a model the key says to reuse names the file and the stage
+    (folder / "model.safetensors").write_bytes(b"\x00" * 20)
+    with pytest.raises(TypError, match=r"model.safetensors: file: expected a complete safetensors file .* ddpm stage"):
+        stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "a", log_fn=print)
+    (folder / "model.safetensors").unlink()
+    with pytest.raises(TypError, match=r"model.safetensors: file: expected trained weights \(run the ddpm stage"):
+        stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "a", log_fn=print)
     # a run killed after its step-4 checkpoint resumes there and ends with the same weights
     interrupted = dataclasses.replace(cfg, steps=4)
     stage.train_model(interrupted, run, reps[run.representation], 0, x, data, out=tmp_path / "b", log_fn=print)
@@ -186,19 +199,6 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
         stage.train_model(cfg, run, reps[run.representation], 0, torch.full_like(x, float("nan")), data,
                           out=tmp_path / "c", log_fn=print)
     assert not (tmp_path / "c" / "models").exists()
-
-
-def test_damaged_weights_name_the_file_and_the_stage(tmp_path):
-    net = torch.nn.Linear(2, 2)
-    save_weights(tmp_path, net, {"key": "k"})
-    state, config = load_weights(tmp_path, "ddpm")
-    assert config == {"key": "k"} and torch.equal(state["weight"], net.weight)
-    (tmp_path / "model.safetensors").write_bytes(b"\x00" * 20)
-    with pytest.raises(TypError, match=r"model.safetensors: weights: expected a complete safetensors file from the ddpm"):
-        load_weights(tmp_path, "ddpm")
-    (tmp_path / "model.safetensors").unlink()
-    with pytest.raises(TypError, match="dvc repro ddpm"):
-        load_weights(tmp_path, "ddpm")
 
 
 def test_sampling_is_seeded_and_cached(cfg, scans, tmp_path):
