@@ -18,6 +18,7 @@ sampler; generated images go back to points, which are what every metric compare
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -99,7 +100,7 @@ def load_scans(sim_root: Path, *, domain: str, split: str, ego_only: bool) -> li
 
 
 @dataclass(frozen=True)
-class Representation:
+class Representation(ABC):
     """One LiDAR image of the paper: points <-> the [-1, 1] pixels the model sees.
 
     Subclasses say how a cloud becomes an image and back (:mod:`typ.projection`), how the image
@@ -111,27 +112,29 @@ class Representation:
     patch: tuple[int, int]
 
     @property
+    @abstractmethod
     def shape(self) -> tuple[int, int, int]:
         """(C, H, W) of the model's pixels."""
-        raise NotImplementedError
 
+    @abstractmethod
     def image(self, points: np.ndarray) -> np.ndarray:
         """The physical image of a non-empty cloud."""
-        raise NotImplementedError
 
+    @abstractmethod
     def empty_image(self) -> np.ndarray:
-        raise NotImplementedError
+        """The physical image of a cloud with no point (what :meth:`pixels` gives for one)."""
 
+    @abstractmethod
     def image_points(self, image: np.ndarray) -> np.ndarray:
         """The inverse of :meth:`image` for a canonical image."""
-        raise NotImplementedError
 
+    @abstractmethod
     def mirror_index(self, width: int) -> np.ndarray:
         """Column order of the image of the cloud mirrored across the x axis (y -> -y)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def round_trip(self, scans: list["Scan"]) -> dict:
-        raise NotImplementedError
+        """How much of real ``scans`` survives points -> image -> points (figures for the report)."""
 
     def pixels(self, points: np.ndarray) -> np.ndarray:
         """(N, >=3) points -> (C, H, W) float32 pixels in [-1, 1]; an empty cloud gives an empty image."""
