@@ -37,15 +37,19 @@ def save_module(folder: Path, module: nn.Module, config: dict, **extra: Any) -> 
     return folder
 
 
+def _parse(path: Path, stage: str):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise TypError(path, "file", f"the JSON config the {stage} stage writes", f"{type(exc).__name__}: {exc}") from None
+
+
 def read_config(folder: Path, stage: str) -> dict:
     """``config.json`` of a module folder; missing or unreadable raises naming ``stage``."""
     path = Path(folder) / CONFIG
     if not path.is_file():
         raise TypError(path, "file", f"a trained model's config (run the {stage} stage: dvc repro)", "missing")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise TypError(path, "file", f"the JSON config the {stage} stage writes", f"{type(exc).__name__}: {exc}") from None
+    data = _parse(path, stage)
     if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
         raise TypError(path, "config", f"a mapping with a 'config' mapping (written by the {stage} stage)",
                        type(data).__name__ if not isinstance(data, dict) else sorted(data))
@@ -99,3 +103,19 @@ def load_module(folder: Path, build: Callable[[dict], M], stage: str) -> tuple[M
                        f"{type(exc).__name__}: {exc}") from None
     load_into(module, read_weights(folder, stage), folder / WEIGHTS, stage)
     return module.eval(), meta
+
+
+def load_if_key(folder: Path, build: Callable[[dict], M], stage: str, key: str) -> tuple[M, dict] | None:
+    """:func:`load_module` when ``folder`` holds a module saved with ``key=key``; None when it holds
+    none, or one whose key differs (another run's: the caller trains it again and overwrites it).
+
+    The key is compared before the folder's layout is checked, so a folder an older version of
+    the stage wrote is retrained once its key changes; a config.json that does not parse raises.
+    """
+    path = Path(folder) / CONFIG
+    if not path.is_file():
+        return None
+    saved = _parse(path, stage)
+    if not isinstance(saved, dict) or saved.get("key") != key:
+        return None
+    return load_module(folder, build, stage)

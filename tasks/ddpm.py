@@ -10,14 +10,15 @@ sampler; generated images go back to points, which are what every metric compare
 - Training (Ho et al.): ε-prediction, E_{t, ε} ||ε - ε_θ(√ᾱ_t x_0 + √(1 - ᾱ_t) ε, t)||², AdamW,
   mirrored copies of every image (y -> -y), batches a pure function of (seed, step)
   (:func:`tasks.training.run_loop`: resumable, a NaN loss stops with the last good checkpoint).
-  Weights: ``<out>/models/<name>/model.safetensors`` + ``config.json`` (with the run key: a
-  model whose key matches is loaded, not retrained).
+  Weights: ``<out>/models/<name>/`` as :mod:`tasks.artifacts` writes them (the config with the
+  run key: a model whose key matches is loaded, not retrained).
 - Sampling: :func:`models.samplers.sample` with a stock diffusers scheduler on the model's
   own β; the generated set of a (model, sampler, steps) is cached under ``<out>/samples/``.
 """
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -30,25 +31,27 @@ import models.pixel_ddpm
 import models.samplers
 import models.schedules
 import models.time_embedding
+import tasks.artifacts
 from models.pixel_ddpm import PixelDiffusion
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
+from tasks.artifacts import load_if_key, save_module
 from tasks.stage1 import noised_batch
-from tasks.training import (batch_rng, grad_norm, load_weights, run_checkpoint_dir, run_loop, save_weights,
-                            seed_everything)
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything
 from typ import distributed
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene
-from typ.io import atomic_path, code_digest, hash_obj, read_json_or_none
+from typ.io import atomic_path, code_digest, hash_obj
 from typ.projection import (RangeLayout, bev_image, bev_to_points, from_unit, range_image, range_pixels,
                             range_to_points, to_unit)
 from typ.sim import domain_spec
 from typ.voxel import Grid
 
 STAGE = "ddpm"
-#: the code a trained model / a generated set depends on: part of their cache keys
-_MODEL_CODE = code_digest(models.pixel_ddpm, models.time_embedding, models.schedules)
+#: the code a trained model / a generated set depends on: part of their cache keys (tasks.artifacts:
+#: the saved folder's layout, so that a folder in an older layout is retrained, not misread)
+_MODEL_CODE = code_digest(models.pixel_ddpm, models.time_embedding, models.schedules, tasks.artifacts)
 _SAMPLER_CODE = code_digest(models.samplers)
 #: samples drawn per reverse-process call (bounds memory at paper scale)
 SAMPLE_BATCH = 32
@@ -97,7 +100,7 @@ def load_scans(sim_root: Path, *, domain: str, split: str, ego_only: bool) -> li
 
 
 @dataclass(frozen=True)
-class Representation:
+class Representation(ABC):
     """One LiDAR image of the paper: points <-> the [-1, 1] pixels the model sees.
 
     Subclasses say how a cloud becomes an image and back (:mod:`typ.projection`), how the image
@@ -109,27 +112,29 @@ class Representation:
     patch: tuple[int, int]
 
     @property
+    @abstractmethod
     def shape(self) -> tuple[int, int, int]:
         """(C, H, W) of the model's pixels."""
-        raise NotImplementedError
 
+    @abstractmethod
     def image(self, points: np.ndarray) -> np.ndarray:
         """The physical image of a non-empty cloud."""
-        raise NotImplementedError
 
+    @abstractmethod
     def empty_image(self) -> np.ndarray:
-        raise NotImplementedError
+        """The physical image of a cloud with no point (what :meth:`pixels` gives for one)."""
 
+    @abstractmethod
     def image_points(self, image: np.ndarray) -> np.ndarray:
         """The inverse of :meth:`image` for a canonical image."""
-        raise NotImplementedError
 
+    @abstractmethod
     def mirror_index(self, width: int) -> np.ndarray:
         """Column order of the image of the cloud mirrored across the x axis (y -> -y)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def round_trip(self, scans: list["Scan"]) -> dict:
-        raise NotImplementedError
+        """How much of real ``scans`` survives points -> image -> points (figures for the report)."""
 
     def pixels(self, points: np.ndarray) -> np.ndarray:
         """(N, >=3) points -> (C, H, W) float32 pixels in [-1, 1]; an empty cloud gives an empty image."""
@@ -288,12 +293,10 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
     name = model_name(run, seed)
     key = model_key(cfg, run, rep, seed, data)
     folder = out / "models" / name
-    saved = read_json_or_none(folder / "config.json")
-    if saved is not None and saved.get("key") == key:
-        state, saved = load_weights(folder, STAGE)
-        model = PixelDiffusion.from_config(saved["model"])
-        model.load_state_dict(state)
-        return TrainedModel(name, key, model.eval(), saved["schedule"], saved["train_timesteps"],
+    found = load_if_key(folder, PixelDiffusion.from_config, STAGE, key)
+    if found is not None:
+        model, saved = found
+        return TrainedModel(name, key, model, saved["schedule"], saved["train_timesteps"],
                             saved["seconds_training"], trained=False)
     seed_everything(seed)
     model = build(cfg, run, rep)
@@ -324,9 +327,8 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
                  log_fn=lambda v, step: log_fn({f"ddpm.{name}.{k}": val for k, val in v.items()}, step))
     seconds = round(time.perf_counter() - t0, 3)
     if distributed.is_main():
-        save_weights(folder, model, {"key": key, "model": model.config, "schedule": run.schedule,
-                                     "train_timesteps": cfg.train_timesteps, "representation": rep.describe(),
-                                     "seconds_training": seconds})
+        save_module(folder, model, model.config, key=key, schedule=run.schedule, train_timesteps=cfg.train_timesteps,
+                    representation=rep.describe(), seconds_training=seconds)
     return TrainedModel(name, key, model.eval(), run.schedule, cfg.train_timesteps, seconds, trained=True)
 
 

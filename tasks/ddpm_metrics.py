@@ -11,7 +11,7 @@ Four numbers per set, all from point clouds (LiDAR DDPM §IV-1, after LiDM):
   of typ's own range-image and voxel networks (:mod:`tasks.lidar_features`): comparable within
   typ only.
 
-Intervals: :func:`typ.metrics.interval.hierarchical_interval` over training seeds and samples.
+Intervals: :func:`typ.metrics.intervals.hierarchical_bootstrap` over training seeds and samples.
 ``spread``: sqrt(tr Σ_gen / tr Σ_real) of the FRID features: 1 = as varied as the real scans,
 0 = every sample the same.
 """
@@ -25,7 +25,7 @@ from scipy.spatial.distance import jensenshannon
 from typ.errors import TypError
 from typ.metrics import PRESETS, bev_histogram
 from typ.metrics.frechet import frechet_from_features
-from typ.metrics.interval import hierarchical_interval
+from typ.metrics.intervals import hierarchical_bootstrap
 
 METRICS = ("jsd", "mmd", "frid", "fpvd")
 PRESET = "r2dm"
@@ -92,8 +92,8 @@ def score(real: SetStats, generated: list[SetStats], *, n_boot: int, seed: int) 
     sizes = [len(g) for g in generated]
     out: dict = {}
     for i, (name, fn) in enumerate(metric_fns.items()):
-        est, lo, hi = hierarchical_interval(fn, sizes, len(real), n_boot=n_boot, seed=seed + i)
-        out[name] = [est, lo, hi]
+        iv = hierarchical_bootstrap(fn, sizes, len(real), n_boot=n_boot, seed=seed + i)
+        out[name] = [iv.value, iv.low, iv.high]
     real_var = np.trace(np.atleast_2d(np.cov(real.frid, rowvar=False)))
     out["spread"] = float(np.mean([np.sqrt(np.trace(np.atleast_2d(np.cov(g.frid, rowvar=False))) / real_var)
                                    for g in generated]))

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from tasks import evaluate_generation as gen
-from tasks import genscore
+from tasks import genscore, selftrain
 from typ.io import write_text
 from typ.metrics.intervals import Interval
 
@@ -34,7 +34,8 @@ ACCURACY_COLUMNS = [("iou", "IoU"), ("iou_0-20", "IoU 0–20 m"), ("iou_20-40", 
                     ("iou_40-80", "IoU 40–80 m"), ("iou_seen", "IoU seen"), ("iou_unseen", "IoU unseen"),
                     ("iou_above_ground", "IoU above ground"), ("object_hit_rate", "object hit rate"),
                     ("chamfer_m", "Chamfer m"), ("jsd_r2dm", "JSD"), ("mmd_r2dm", "MMD")]
-TABLE4 = ("no_adaptation", "disc", "disc_st", "disc_st_dummy")
+#: the adaptation ablation's rows (TYP Table 4), as tasks.selftrain names them
+TABLE4 = tuple(v.name for v in selftrain.TABLE4)
 
 
 def cell(v) -> str:
@@ -64,7 +65,7 @@ def comparisons(table_: dict[str, dict[str, Interval]], pairs: list[tuple[str, s
         lower = fig in ("chamfer_m", "jsd_r2dm", "mmd_r2dm")
         wins = (y.low > x.high) if lower else x.above(y)
         verdict = "**beats**" if wins else "does not beat"
-        lines.append(f"- {gen.METHODS[a]} {verdict} {gen.METHODS[b]} on {fig}: {cell(x)} vs {cell(y)}")
+        lines.append(f"- {gen.label(a)} {verdict} {gen.label(b)} on {fig}: {cell(x)} vs {cell(y)}")
     return lines
 
 
@@ -93,10 +94,10 @@ def write_generation_report(path: Path, result: dict, *, extra: list[str], galle
                          (resim_key, "resim", "iou_unseen"), (resim_key, "resim", "iou_above_ground"),
                          (typ, "no_adaptation", "jsd_r2dm"), ("disc_st_dummy", "one_stage", "jsd_r2dm")]), "",
         "## TYP Table 4 analogue: the adaptation ablation", "",
-        table({gen.METHODS[k]: t[k] for k in TABLE4 if k in t},
+        table({gen.label(k): t[k] for k in (*TABLE4, *([typ] if typ not in TABLE4 else [])) if k in t},
               [("jsd_r2dm", "JSD ↓"), ("mmd_r2dm", "MMD ↓"), ("iou", "IoU ↑")]), "",
         "## TYP Table 5 analogue: two-stage against one-stage training at equal steps", "",
-        table({gen.METHODS[k]: t[k] for k in ("disc_st_dummy", "disc", "one_stage") if k in t},
+        table({gen.label(k): t[k] for k in ("disc_st_dummy", "disc", "one_stage") if k in t},
               [("jsd_r2dm", "JSD ↓"), ("mmd_r2dm", "MMD ↓"), ("iou", "IoU ↑")]), "",
         f"Sample-to-sample agreement of TYP (pooled IoU between two noise seeds of the same pairs): "
         f"{result['spread_iou']:.3f} (1 would mean the sample ignores its noise)." if result["spread_iou"] is not None
@@ -196,7 +197,7 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
                "seconds_per_view": {k: round(v, 4) for k, v in result["seconds"].items()},
                "adaptation": adaptation}
     if run is not None:
-        rows = [{"method": gen.METHODS[k], **{f: round(iv.value, 5) for f, iv in v.items()}}
+        rows = [{"method": gen.label(k), **{f: round(iv.value, 5) for f, iv in v.items()}}
                 for k, v in result["table"].items()]
         run.log_table(rows, "generation_accuracy.json")
         for s in samples[:4]:

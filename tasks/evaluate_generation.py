@@ -28,7 +28,7 @@ import numpy as np
 from tasks import genscore, stage1, stage2
 from tasks.pairs import iter_pairs
 from tasks.pipeline import TYPPipeline
-from tasks.selftrain import base_pipeline, resim_variant, variant_of
+from tasks.selftrain import base_pipeline, resim_variant, variant_of, variants_to_run
 from typ.metrics.intervals import Interval
 from typ.resim import coverage_mask, hybrid
 from typ.voxel import Grid, voxelize
@@ -119,9 +119,11 @@ def pipelines(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> dict[str, T
     base = base_pipeline(cfg, root, seed, x_vq, y_encoder, stats)
     out = {"stage1_only": base}
     folder = stage1.replica_dir(root / cfg.selftrain.out, seed)
-    for name in ("no_adaptation", "disc", "disc_st", "disc_st_dummy", "typ_resim"):
-        if (folder / name / "config.json").is_file():
-            out[name] = base.with_adapter(stage2.load_adapter(folder / name, "selftrain"))
+    # the variants selftrain trains under these params (every Table 4 row when ablation is on, and
+    # the switches' own combination even when it is none of them); typ_resim when stage 2 re-simulates
+    for v in variants_to_run(cfg.selftrain, resim=cfg.stage2.resim):
+        if (folder / v.name / "config.json").is_file():
+            out[v.name] = base.with_adapter(stage2.load_adapter(folder / v.name, "selftrain"))
     one = stage1.replica_dir(root / cfg.stage2.out, seed) / "one_stage"
     if (one / "unet" / "config.json").is_file():
         from tasks.artifacts import load_module
@@ -176,7 +178,13 @@ def _in_seen(points: np.ndarray, seen: np.ndarray, grid: Grid) -> np.ndarray:
     return out
 
 
+def label(key: str) -> str:
+    """A method key's row label; a selftrain switch combination outside Table 4 goes by its variant name."""
+    return METHODS.get(key, f"TYP variant {key} (selftrain switches)")
+
+
 def report_rows(result: dict) -> dict[str, dict[str, Interval]]:
-    """The accuracy table's rows in :data:`METHODS` order (methods not run are left out)."""
+    """The accuracy table's rows in :data:`METHODS` order, other variants after them (methods not
+    run are left out)."""
     table = result["table"]
-    return {METHODS[k]: table[k] for k in METHODS if k in table}
+    return {label(k): table[k] for k in [*METHODS, *(k for k in table if k not in METHODS)] if k in table}

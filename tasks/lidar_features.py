@@ -7,7 +7,7 @@
 
 Both learn from the simulator's per-point labels (``AgentView.semantics``) of the training
 split; the held-out split's mIoU goes to the report so a reader can see the features mean
-something. Output: ``<out>/features/{range,voxel}/model.safetensors + config.json`` (the config
+something. Output: ``<out>/features/{range,voxel}/`` as :mod:`tasks.artifacts` writes them (the config
 holds the run key; a matching key is loaded instead of retrained) and resumable checkpoints
 under ``<out>/checkpoints/features-<kind>/<key>/``.
 """
@@ -22,10 +22,11 @@ import torch
 import torch.nn.functional as F
 
 import models.lidar_features
+import tasks.artifacts
 import typ.projection
 from models.lidar_features import SegmentationFeatureNet
-from tasks.training import (batch_rng, grad_norm, load_weights, run_checkpoint_dir, run_loop, save_weights,
-                            seed_everything)
+from tasks.artifacts import load_if_key, save_module
+from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything
 from typ import distributed
 from typ.config import FeatureNetConfig, as_dict
 from typ.io import code_digest, hash_obj
@@ -37,7 +38,9 @@ IGNORE = 255
 NUM_CLASSES = len(SEMANTIC_CLASSES)
 KINDS = ("range", "voxel")
 STAGE = "ddpm"
-_CODE = code_digest(models.lidar_features, typ.projection)
+#: part of the run key (tasks.artifacts: the saved folder's layout, so that a folder in an older
+#: layout is retrained, not misread)
+_CODE = code_digest(models.lidar_features, typ.projection, tasks.artifacts)
 
 
 def range_input(points: np.ndarray, layout: RangeLayout) -> np.ndarray:
@@ -198,19 +201,15 @@ def train_feature_nets(cfg: FeatureNetConfig, seed: int, layout: RangeLayout, tr
         folder = out / "features" / kind
         key = hash_obj({"cfg": as_dict(cfg), "seed": seed, "kind": kind, "layout": layout.to_dict(),
                         "data": data_key, "code": _CODE})[:16]
-        net = None
-        if (folder / "config.json").exists():
-            state, saved = load_weights(folder, STAGE)
-            if saved.get("key") == key:
-                net = SegmentationFeatureNet.from_config(saved["model"])
-                net.load_state_dict(state)
-                net.eval()
-        if net is None:
+        found = load_if_key(folder, SegmentationFeatureNet.from_config, STAGE, key)
+        if found is not None:
+            net = found[0]
+        else:
             x, y = _dataset(kind, train_scans, layout, grid)
             net = _train_one(kind, cfg, seed, x, y, key=key, out=out, log_fn=log_fn)
             if distributed.is_main():
-                save_weights(folder, net, {"key": key, "model": net.config, "layout": layout.to_dict(),
-                                           "voxel_grid": grid.to_dict(), "classes": list(SEMANTIC_CLASSES)})
+                save_module(folder, net, net.config, key=key, layout=layout.to_dict(), voxel_grid=grid.to_dict(),
+                            classes=list(SEMANTIC_CLASSES))
         nets[kind] = net
         scores[kind] = miou(kind, net, *_dataset(kind, test_scans, layout, grid))
     return FeatureNets(nets["range"], nets["voxel"], layout, grid), scores

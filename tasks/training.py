@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import io
-import json
 import math
 import re
 import shutil
@@ -27,7 +26,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from typ import distributed
 from typ.errors import TypError
-from typ.io import write_bytes, write_json
+from typ.io import write_bytes
 
 CKPT = re.compile(r"^step_(\d{8})\.pt$")
 
@@ -78,42 +77,6 @@ def save_torch(path: Path, obj: dict) -> None:
     buf = io.BytesIO()
     torch.save(obj, buf)
     write_bytes(path, buf.getvalue())
-
-
-def save_weights(folder: Path, module: torch.nn.Module, config: dict) -> None:
-    """``folder/model.safetensors`` (the module's state dict) + ``folder/config.json``, each atomic.
-
-    The config is written last, so a folder with a config always has complete weights beside it.
-    """
-    from safetensors.torch import save
-
-    state = {k: v.detach().cpu().contiguous() for k, v in module.state_dict().items()}
-    write_bytes(folder / "model.safetensors", save(state))
-    write_json(folder / "config.json", config)
-
-
-def load_weights(folder: Path, stage: str) -> tuple[dict[str, torch.Tensor], dict]:
-    """(state dict, config) saved by :func:`save_weights`. A missing or damaged file raises
-    TypError naming the file and the stage that makes it."""
-    from safetensors import SafetensorError
-    from safetensors.torch import load
-
-    config_path, weights_path = folder / "config.json", folder / "model.safetensors"
-    for path in (config_path, weights_path):
-        if not path.is_file():
-            raise TypError(path, "file", f"a model written by the {stage} stage (run: dvc repro {stage})", "missing")
-    try:
-        config = json.loads(config_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise TypError(config_path, "config", f"the JSON config the {stage} stage writes", str(exc)[:80]) from None
-    try:
-        state = load(weights_path.read_bytes())
-    except (SafetensorError, ValueError) as exc:
-        raise TypError(weights_path, "weights", f"a complete safetensors file from the {stage} stage "
-                       f"(rerun: dvc repro -f {stage})", str(exc)[:80]) from None
-    if not isinstance(config, dict):
-        raise TypError(config_path, "config", "a JSON object", type(config).__name__)
-    return state, config
 
 
 def load_latest(directory: Path) -> dict | None:

@@ -1,5 +1,6 @@
 """The ddpm stage's parts: model, config, training (resume, reuse, NaN guard), sampling, metrics, targets."""
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -12,11 +13,10 @@ from tasks import ddpm as stage
 from tasks.ddpm_metrics import score, set_stats
 from tasks.ddpm_report import targets
 from tasks.lidar_features import FeatureNets, build as build_net, voxel_labels
-from tasks.training import TrainingDiverged, load_weights, save_weights
+from tasks.training import TrainingDiverged
 from typ.config import config_from_dict
 from typ.errors import TypError
 from typ.metrics import jsd_bev, mmd_bev
-from typ.metrics.interval import hierarchical_interval, mean_interval
 from typ.sim import simulate_scenario
 from typ.voxel import Grid
 
@@ -149,19 +149,6 @@ def test_empty_generated_clouds_are_counted_not_fatal(scans, nets):
     assert out["empty"] == 1 and np.isfinite(out["jsd"][0]) and np.isfinite(out["mmd"][0])
 
 
-def test_intervals():
-    assert mean_interval([2.0]) == (2.0, 2.0, 2.0)
-    mean, lo, hi = mean_interval([1.0, 2.0, 3.0, 10.0], seed=3)
-    assert mean == 4.0 and 1.0 <= lo < mean < hi <= 10.0
-    assert mean_interval([1.0, 2.0, 3.0, 10.0], seed=3) == (mean, lo, hi)
-    # a metric that is the mean of the chosen samples: the interval covers the spread of that mean
-    values = [np.array([0.0, 1.0, 2.0, 3.0]), np.array([10.0, 11.0, 12.0, 13.0])]
-    est, lo, hi = hierarchical_interval(lambda s, g, r: float(values[s][g].mean()), [4, 4], 5, n_boot=500)
-    assert est == pytest.approx(6.5) and lo < 2.0 and hi > 11.0
-    with pytest.raises(TypError, match="values"):
-        mean_interval([float("nan")])
-
-
 def test_voxel_labels_take_the_majority_class():
     grid = Grid((0, 2), (0, 2), (0, 1), (2, 2, 1))
     pts = np.array([[0.1, 0.1, 0.5], [0.2, 0.2, 0.5], [0.3, 0.3, 0.5], [1.5, 1.5, 0.5], [1.6, 1.6, 0.5]], np.float32)
@@ -183,6 +170,18 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     assert not again.trained
     for k, v in first.model.state_dict().items():
         assert torch.equal(v, again.model.state_dict()[k])
+    # tasks.artifacts' layout: what rebuilds the model under "config", the run's fields beside it
+    folder = tmp_path / "a" / "models" / stage.model_name(run, 0)
+    saved = json.loads((folder / "config.json").read_text())
+    assert saved["config"] == first.model.config and saved["key"] == first.key
+    assert (saved["schedule"], saved["train_timesteps"]) == (run.schedule, cfg.train_timesteps)
+    # a damaged or missing weights file of a model the key says to reuse names the file and the stage
+    (folder / "model.safetensors").write_bytes(b"\x00" * 20)
+    with pytest.raises(TypError, match=r"model.safetensors: file: expected a complete safetensors file .* ddpm stage"):
+        stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "a", log_fn=print)
+    (folder / "model.safetensors").unlink()
+    with pytest.raises(TypError, match=r"model.safetensors: file: expected trained weights \(run the ddpm stage"):
+        stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "a", log_fn=print)
     # a run killed after its step-4 checkpoint resumes there and ends with the same weights
     interrupted = dataclasses.replace(cfg, steps=4)
     stage.train_model(interrupted, run, reps[run.representation], 0, x, data, out=tmp_path / "b", log_fn=print)
@@ -200,19 +199,6 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
         stage.train_model(cfg, run, reps[run.representation], 0, torch.full_like(x, float("nan")), data,
                           out=tmp_path / "c", log_fn=print)
     assert not (tmp_path / "c" / "models").exists()
-
-
-def test_damaged_weights_name_the_file_and_the_stage(tmp_path):
-    net = torch.nn.Linear(2, 2)
-    save_weights(tmp_path, net, {"key": "k"})
-    state, config = load_weights(tmp_path, "ddpm")
-    assert config == {"key": "k"} and torch.equal(state["weight"], net.weight)
-    (tmp_path / "model.safetensors").write_bytes(b"\x00" * 20)
-    with pytest.raises(TypError, match=r"model.safetensors: weights: expected a complete safetensors file from the ddpm"):
-        load_weights(tmp_path, "ddpm")
-    (tmp_path / "model.safetensors").unlink()
-    with pytest.raises(TypError, match="dvc repro ddpm"):
-        load_weights(tmp_path, "ddpm")
 
 
 def test_sampling_is_seeded_and_cached(cfg, scans, tmp_path):

@@ -1,9 +1,10 @@
-"""Cluster-bootstrap intervals: hand-worked pooled ratios, coverage of a known mean, seeds."""
+"""Cluster-bootstrap intervals: hand-worked pooled ratios, coverage of a known mean, seeds;
+the hierarchical (seeds, then samples) bootstrap of a set metric and its re-centring."""
 import numpy as np
 import pytest
 
 from typ.errors import TypError
-from typ.metrics.intervals import Interval, bootstrap, mean_of_means, pooled_ratio
+from typ.metrics.intervals import Interval, bootstrap, hierarchical_bootstrap, mean_of_means, pooled_ratio
 
 
 def test_pooled_ratio_point_estimate_is_the_pooled_figure_not_the_mean_of_ratios():
@@ -67,3 +68,38 @@ def test_basic_interval_reflects_a_resampling_bias_about_the_figure():
     assert (b.low, b.high) == pytest.approx((-p.high, -p.low))  # reflected about 0
     with pytest.raises(TypError, match="method"):
         bootstrap(missing_share, K, method="bca")
+
+
+def test_hierarchical_bootstrap_resamples_seeds_then_samples():
+    """A metric that is the mean of the chosen samples: the figure is the mean over seeds, and
+    the interval spans both the spread between seeds and within each seed's samples."""
+    values = [np.array([0.0, 1.0, 2.0, 3.0]), np.array([10.0, 11.0, 12.0, 13.0])]
+    iv = hierarchical_bootstrap(lambda s, g, r: float(values[s][g].mean()), [4, 4], 5, n_boot=500)
+    assert iv.value == pytest.approx(6.5) and iv.low < 2.0 and iv.high > 11.0
+    again = hierarchical_bootstrap(lambda s, g, r: float(values[s][g].mean()), [4, 4], 5, n_boot=500)
+    assert again == iv  # explicit seed: same inputs, same interval
+
+
+def test_hierarchical_bootstrap_recentres_a_repeat_biased_metric_on_the_figure():
+    """The share of a seed's K samples a resample misses is 0 on the full set and about
+    (1 - 1/K)^K on a resample; the re-centred interval is the percentile interval moved down
+    by the replicates' median, so it keeps their spread and holds the figure."""
+    K = 10
+
+    def missing_share(s, g, r):
+        return 1.0 - len(np.unique(g)) / K
+
+    pct = hierarchical_bootstrap(missing_share, [K], 7, n_boot=400, seed=1, method="percentile")
+    rec = hierarchical_bootstrap(missing_share, [K], 7, n_boot=400, seed=1)
+    assert pct.value == rec.value == 0.0 and pct.low > 0.0
+    shift = pct.low - rec.low
+    assert pct.high - rec.high == pytest.approx(shift)
+    assert shift == pytest.approx((1 - 1 / K) ** K, abs=0.06)
+    assert rec.low < 0.0 < rec.high
+
+
+def test_hierarchical_bootstrap_names_bad_sizes():
+    with pytest.raises(TypError, match="sizes"):
+        hierarchical_bootstrap(lambda s, g, r: 0.0, [3, 0], 4)
+    with pytest.raises(TypError, match="method"):
+        hierarchical_bootstrap(lambda s, g, r: 0.0, [3], 4, method="bca")

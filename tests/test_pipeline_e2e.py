@@ -342,7 +342,7 @@ def test_show_renders_generated_agents_beside_their_true_views(project, tmp_path
 
 
 def test_ddpm_stage_writes_its_table_models_and_report(project):
-    from tasks.training import load_weights
+    from tasks.artifacts import read_config, read_weights
 
     proj, _, _ = project
     dd = json.loads((proj / "metrics" / "ddpm.json").read_text())
@@ -360,8 +360,8 @@ def test_ddpm_stage_writes_its_table_models_and_report(project):
     assert set(dd["feature_nets"]) == {"range", "voxel"} and set(dd["models"]) == {
         "range-time_dependent-fourier-seed0", "bev-linear-sinusoidal-seed0"}
     for name in dd["models"]:
-        state, config = load_weights(proj / "artifacts" / "ddpm" / "models" / name, "ddpm")
-        assert config["train_timesteps"] == 1000 and state
+        folder = proj / "artifacts" / "ddpm" / "models" / name
+        assert read_config(folder, "ddpm")["train_timesteps"] == 1000 and read_weights(folder, "ddpm")
     text = (proj / "reports" / "ddpm.md").read_text()
     assert "Table II analogue: range image" in text and "Side by side with TYP's latent route" in text
     assert "compare rows within typ only" in text and "## Targets" in text

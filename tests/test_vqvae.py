@@ -98,17 +98,23 @@ def _occupancy_batch(n=4, size=32, seed=0):
     return torch.from_numpy(out)
 
 
+def _fit(model: BEVVQVAE, batch: torch.Tensor, steps: int) -> BEVVQVAE:
+    """``steps`` Adam steps (lr 3e-3) of Eq. 1's loss on one batch, over the parameters that take a
+    gradient; returns the model in eval mode."""
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-3)
+    for _ in range(steps):
+        loss, _, _ = model.loss(batch, gamma=2.0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return model.eval()
+
+
 def test_overfits_one_batch_to_reconstruction_iou_above_0_9():
     torch.manual_seed(0)
     m = BEVVQVAE(in_channels=4, latent_channels=8, block_out_channels=(16, 32), num_codes=64, norm_num_groups=8)
     x = _occupancy_batch()
-    opt = torch.optim.Adam(m.parameters(), lr=3e-3)
-    for _ in range(150):
-        loss, _, _ = m.loss(x, gamma=2.0)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    m.eval()
+    _fit(m, x, 150)
     with torch.no_grad():
         pred = torch.sigmoid(m(x).logits) > 0.5
     truth = x > 0.5
@@ -122,15 +128,8 @@ def test_ema_quantizer_keeps_codes_alive_where_the_plain_one_collapses():
     used = {}
     for quantizer in ("ema", "vq"):
         torch.manual_seed(0)
-        m = BEVVQVAE(in_channels=4, latent_channels=4, block_out_channels=(8, 16), num_codes=64, norm_num_groups=4,
-                     quantizer=quantizer)
-        opt = torch.optim.Adam([p for p in m.parameters() if p.requires_grad], lr=3e-3)
-        for _ in range(40):
-            loss, _, _ = m.loss(x, gamma=2.0)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        m.eval()
+        m = _fit(BEVVQVAE(in_channels=4, latent_channels=4, block_out_channels=(8, 16), num_codes=64, norm_num_groups=4,
+                          quantizer=quantizer), x, 40)
         with torch.no_grad():
             used[quantizer] = len(torch.unique(m(x).indices))
     assert used["ema"] >= 0.75 * 64 and used["ema"] > used["vq"] + 12

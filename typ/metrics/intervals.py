@@ -6,10 +6,14 @@ exist, seeds are resampled too, and each replicate's figure is the mean over its
 the figure pooled over its scenes. The interval is the percentile interval of ``n_boot``
 replicates (Efron & Tibshirani, ch. 13); the point estimate is the figure on the data as
 observed. "A beats B" is claimed only when A's and B's intervals do not overlap.
+
+:func:`hierarchical_bootstrap` is the same for a set metric of generated samples against a
+reference set (JSD, MMD, Fréchet distance), where each training seed has its own samples:
+seeds are resampled, then each drawn seed's samples and the reference samples.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,15 +43,45 @@ class Interval:
         return f"{self.value:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
 
 
+METHODS = ("percentile", "basic", "recentred")
+
+
+def _check(level: float, method: str) -> None:
+    if not 0 < level < 1:
+        raise TypError("bootstrap", "level", "a probability in (0, 1)", level)
+    if method not in METHODS:
+        raise TypError("bootstrap", "method", " or ".join(METHODS), method)
+
+
+def _interval(value: float, reps: np.ndarray, level: float, method: str) -> Interval:
+    """The ``level`` interval of the replicates ``reps`` around the figure ``value``.
+
+    method: ``"percentile"`` — the replicates' quantiles; ``"basic"`` — the quantiles
+    reflected about the figure, [2 v - q_high, 2 v - q_low]; ``"recentred"`` — the quantiles
+    shifted by (v - median of the replicates). The last two are for a statistic a resample
+    biases: a JSD of pooled histograms or a Fréchet distance grows when a resampled set holds
+    repeats (fewer distinct scans), so the percentile interval can lie wholly above the figure
+    itself; "basic" reflects that bias back, "recentred" keeps the replicates' spread around
+    the figure.
+    """
+    if len(reps) == 0:
+        return Interval(value, float("nan"), float("nan"), level)
+    tail = (1 - level) / 2 * 100
+    low, high = np.percentile(reps, [tail, 100 - tail])
+    if method == "basic":
+        low, high = 2 * value - high, 2 * value - low
+    elif method == "recentred":
+        shift = float(np.median(reps)) - value
+        low, high = low - shift, high - shift
+    return Interval(value, float(low), float(high), level)
+
+
 def bootstrap(stat: Callable[[np.ndarray, np.ndarray], float], n_clusters: int, n_seeds: int = 1, *,
               n_boot: int = 1000, level: float = 0.95, seed: int = 0, method: str = "percentile") -> Interval:
     """``stat(cluster_index, seed_index)`` -> figure, evaluated on ``n_boot`` resamples of the
     clusters (and of the seeds when ``n_seeds > 1``), each drawn with replacement.
 
-    method: ``"percentile"`` — the replicates' quantiles; ``"basic"`` — the quantiles
-    reflected about the figure, [2 v - q_high, 2 v - q_low], for a statistic a resample biases
-    (a JSD of pooled histograms grows when repeated scenes leave cells empty, so its percentile
-    interval can lie wholly above the figure itself).
+    method: one of :data:`METHODS` (see :func:`_interval`); ``"basic"`` for a pooled JSD.
 
     ``stat`` receives index arrays (repeats allowed) and must pool over them as it pools over
     the whole set, e.g. ``IoU = sum(tp[c]) / sum(tp[c] + fp[c] + fn[c])``. Replicates whose
@@ -57,10 +91,7 @@ def bootstrap(stat: Callable[[np.ndarray, np.ndarray], float], n_clusters: int, 
         raise TypError("bootstrap", "n_clusters", "at least one scene", n_clusters)
     if n_seeds < 1:
         raise TypError("bootstrap", "n_seeds", "at least one seed", n_seeds)
-    if not 0 < level < 1:
-        raise TypError("bootstrap", "level", "a probability in (0, 1)", level)
-    if method not in ("percentile", "basic"):
-        raise TypError("bootstrap", "method", "percentile or basic", method)
+    _check(level, method)
     clusters, seeds = np.arange(n_clusters), np.arange(n_seeds)
     value = float(stat(clusters, seeds))
     rng = np.random.default_rng(seed)
@@ -69,14 +100,38 @@ def bootstrap(stat: Callable[[np.ndarray, np.ndarray], float], n_clusters: int, 
         c = rng.integers(0, n_clusters, n_clusters)
         s = rng.integers(0, n_seeds, n_seeds) if n_seeds > 1 else seeds
         reps[b] = stat(c, s)
-    reps = reps[np.isfinite(reps)]
-    if len(reps) == 0:
-        return Interval(value, float("nan"), float("nan"), level)
-    tail = (1 - level) / 2 * 100
-    low, high = np.percentile(reps, [tail, 100 - tail])
-    if method == "basic":
-        low, high = 2 * value - high, 2 * value - low
-    return Interval(value, float(low), float(high), level)
+    return _interval(value, reps[np.isfinite(reps)], level, method)
+
+
+def hierarchical_bootstrap(metric: Callable[[int, np.ndarray, np.ndarray], float], n_generated: Sequence[int],
+                           n_reference: int, *, n_boot: int = 1000, level: float = 0.95, seed: int = 0,
+                           method: str = "recentred") -> Interval:
+    """A set metric of generated samples against a reference set, over training seeds.
+
+    metric(s, gen_index, ref_index): the metric of seed s's generated samples ``gen_index``
+    against reference samples ``ref_index`` (index arrays, repeats allowed). n_generated[s]:
+    how many samples seed s generated; n_reference: the reference set's size. The figure is
+    the mean over seeds of the metric on the full sets. Each replicate draws the seeds with
+    replacement, then, for every drawn seed, its generated samples and the reference samples
+    with replacement, and averages the metric over the drawn seeds. The default method,
+    ``"recentred"``, keeps the replicates' spread around the figure (a repeat-biased set
+    metric, see :func:`_interval`). Unlike :func:`bootstrap`, a NaN replicate is kept, so an
+    undefined metric on any resample gives a NaN interval.
+    """
+    _check(level, method)
+    n_seeds = len(n_generated)
+    if n_seeds < 1 or min(n_generated) < 1 or n_reference < 1:
+        raise TypError("bootstrap", "sizes", "at least one seed with >= 1 sample and a non-empty reference",
+                       [list(n_generated), n_reference])
+    every_ref = np.arange(n_reference)
+    value = float(np.mean([metric(s, np.arange(n), every_ref) for s, n in enumerate(n_generated)]))
+    rng = np.random.default_rng(seed)
+    reps = np.empty(n_boot)
+    for b in range(n_boot):
+        seeds = rng.integers(0, n_seeds, n_seeds)
+        reps[b] = np.mean([metric(int(s), rng.integers(0, n_generated[s], n_generated[s]),
+                                  rng.integers(0, n_reference, n_reference)) for s in seeds])
+    return _interval(value, reps, level, method)
 
 
 def pooled_ratio(num: np.ndarray, den: np.ndarray, **kw) -> Interval:

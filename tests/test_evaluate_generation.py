@@ -1,0 +1,54 @@
+"""Which learned methods the evaluate stage scores: the selftrain variants its params train, by name."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tasks import evaluate_generation as gen
+from tasks import stage1
+from typ.config import config_from_dict
+from typ.metrics.intervals import Interval
+
+
+class _Base:
+    """Stands in for stage 1's pipeline: an adapter turns it into the adapter's name."""
+
+    def with_adapter(self, adapter):
+        return adapter
+
+
+def _trained(tmp_path: Path, cfg, names) -> None:
+    for name in names:
+        folder = stage1.replica_dir(tmp_path / cfg.selftrain.out, 0) / name
+        folder.mkdir(parents=True)
+        (folder / "config.json").write_text("{}")
+
+
+@pytest.fixture
+def no_models(monkeypatch):
+    monkeypatch.setattr(gen, "base_pipeline", lambda *a: _Base())
+    monkeypatch.setattr(gen.stage2, "load_adapter", lambda folder, stage="stage2": folder.name)
+
+
+@pytest.mark.parametrize("resim", [False, True])
+def test_pipelines_score_every_variant_selftrain_trains_the_switches_own_included(tmp_path, no_models, resim):
+    cfg = config_from_dict({"selftrain": {"discriminator": False, "self_training": True, "dummy_ego": True,
+                                          "ablation": True}, "stage2": {"resim": resim}})
+    _trained(tmp_path, cfg, ["no_adaptation", "disc", "disc_st", "disc_st_dummy", "st_dummy", "typ_resim"])
+    out = gen.pipelines(cfg, tmp_path, 0, None, None, None)
+    assert list(out) == ["stage1_only", "no_adaptation", "disc", "disc_st", "disc_st_dummy", "st_dummy",
+                         *(["typ_resim"] if resim else [])]
+    assert all(out[k] == k for k in out if k != "stage1_only")
+
+
+def test_pipelines_leave_out_variants_the_params_no_longer_train(tmp_path, no_models):
+    cfg = config_from_dict({"selftrain": {"ablation": False}})  # the full model only
+    _trained(tmp_path, cfg, ["no_adaptation", "disc", "disc_st_dummy"])  # the first two from an older ablation
+    assert list(gen.pipelines(cfg, tmp_path, 0, None, None, None)) == ["stage1_only", "disc_st_dummy"]
+
+
+def test_a_custom_variant_gets_a_row_after_the_known_methods():
+    iv = {"iou": Interval(0.5, 0.4, 0.6)}
+    rows = gen.report_rows({"table": {"st_dummy": iv, "naive_copy": iv, "disc": iv}})
+    assert list(rows) == [gen.METHODS["naive_copy"], gen.METHODS["disc"], "TYP variant st_dummy (selftrain switches)"]
