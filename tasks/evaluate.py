@@ -96,9 +96,15 @@ def write_generation_report(path: Path, result: dict, *, extra: list[str], galle
         "## TYP Table 4 analogue: the adaptation ablation", "",
         table({gen.label(k): t[k] for k in (*TABLE4, *([typ] if typ not in TABLE4 else [])) if k in t},
               [("jsd_r2dm", "JSD ↓"), ("mmd_r2dm", "MMD ↓"), ("iou", "IoU ↑")]), "",
+        *([] if any(k in t for k in TABLE4 if k != typ) else
+          ["Only the model the switches name was trained: the other rows need `selftrain.ablation: true` "
+           "(the `small` profile sets it).", ""]),
         "## TYP Table 5 analogue: two-stage against one-stage training at equal steps", "",
         table({gen.label(k): t[k] for k in ("disc_st_dummy", "disc", "one_stage") if k in t},
               [("jsd_r2dm", "JSD ↓"), ("mmd_r2dm", "MMD ↓"), ("iou", "IoU ↑")]), "",
+        *([] if "one_stage" in t else
+          ["No one-stage model was trained: it needs `stage2.one_stage: true` (the same steps as stage 1 + "
+           "stage 2 together).", ""]),
         f"Sample-to-sample agreement of TYP (pooled IoU between two noise seeds of the same pairs): "
         f"{result['spread_iou']:.3f} (1 would mean the sample ignores its noise)." if result["spread_iou"] is not None
         else "", "",

@@ -52,3 +52,24 @@ def test_a_custom_variant_gets_a_row_after_the_known_methods():
     iv = {"iou": Interval(0.5, 0.4, 0.6)}
     rows = gen.report_rows({"table": {"st_dummy": iv, "naive_copy": iv, "disc": iv}})
     assert list(rows) == [gen.METHODS["naive_copy"], gen.METHODS["disc"], "TYP variant st_dummy (selftrain switches)"]
+
+
+@pytest.mark.parametrize("ablation", [False, True])
+def test_the_report_says_which_table_rows_were_not_trained(tmp_path, ablation):
+    """tiny trains the switches' model alone: Tables 4 and 5 then say which params add their rows."""
+    from tasks.evaluate import ACCURACY_COLUMNS, write_generation_report
+
+    figures = [k for k, _ in ACCURACY_COLUMNS]
+    methods = ["naive_copy", "resim", "stage1_only", "disc_st_dummy", "typ_resim"]
+    if ablation:
+        methods += ["no_adaptation", "disc", "disc_st", "one_stage"]
+    table = {m: {f: Interval(0.1 + 0.01 * i, 0.05, 0.2) for f in figures} for i, m in enumerate(methods)}
+    result = {"table": table, "typ": "disc_st_dummy", "resim_key": "typ_resim", "pairs": 4, "scenes": 2,
+              "seeds": [0], "seconds": {"stage1_only": 0.1}, "spread_iou": 0.3}
+    text = write_generation_report(tmp_path / "r.md", result, extra=[]).read_text()
+    table4 = text.split("## TYP Table 4")[1].split("## TYP Table 5")[0]
+    table5 = text.split("## TYP Table 5")[1]
+    assert ("selftrain.ablation: true" in table4) is not ablation
+    assert ("stage2.one_stage: true" in table5) is not ablation
+    assert table4.count("\n| ") == (1 + 4 if ablation else 1 + 1)  # header + one row per method
+    assert gen.label("one_stage") in table5 if ablation else gen.label("one_stage") not in table5
