@@ -101,26 +101,20 @@ from typ.io import atomic_path, read_json_or_none, write_json, write_text  # noq
 
 REPO = Path(__file__).resolve().parents[1]
 SECTIONS = ("pipeline", "overhead", "skipping", "paper", "fusion")
-#: the e2e test's small params (tests/test_pipeline_e2e.py) with a real_cav/test scenario, which
-#: the fusion stage evaluates on, and fusion training for a couple of steps; every split's
-#: count is multiplied by --scale
-SMALL = {
-    "profile": "tiny",
-    "simulate": {"frames": 2, "azimuth_step_deg": 1.0, "agents_min": 2, "agents_max": 2, "domains": {},
-                 "scenarios": {"source": {"train": 1, "test": 1},
-                               "target": {"train": 1, "val": 1, "test": 1, "pretrain": 1},
-                               "real_cav": {"train": 1, "test": 1}}},
-    "voxelize": {"workers": 2},
-    "vqvae": {"x": {"epochs": 2, "block_out_channels": [8, 16, 16]}, "checkpoint_every": 1},
-    "stage1": {"epochs": 2, "sample_steps": 3, "eval_views": 1, "checkpoint_every": 1, "warmup_steps": 1,
-               "unet": {"block_out_channels": [16, 16, 16]}},
-    "adapt": {"epochs": 1, "disc_width": 8, "checkpoint_every": 1, "eval_views": 2},
-    "stage2": {"epochs": 1, "checkpoint_every": 1, "warmup_steps": 1},
-    "selftrain": {"epochs": 1, "checkpoint_every": 1, "pseudo_references": 2, "sample_steps": 2, "warmup_steps": 1},
-    "generate": {"references_per_frame": 1, "sample_steps": 3, "max_distance": 50.0},
-    "fusion": {"steps": 2, "pretrain_steps": 2, "finetune_steps": 2, "checkpoint_every": 1},
-    "evaluate": {"n_boot": 20, "max_pairs": 2, "gallery": 1},
-}
+def _e2e_params() -> dict:
+    """The e2e test's small params (tests/test_pipeline_e2e.py ``SMALL``), read from the test itself
+    so that the two cannot drift apart: a copy kept here lost the fusion robustness and ddpm
+    settings the stages gained since, and its fusion stage then failed on 2-frame sequences."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_typ_e2e", REPO / "tests" / "test_pipeline_e2e.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return copy.deepcopy(module.SMALL)
+
+
+#: every split's count is multiplied by --scale (real_cav/test: the fusion stage evaluates on it)
+SMALL = _e2e_params()
 ADDED = ("target", "test")          # where the incremental run adds its scenario
 STAGE_CMD = re.compile(r"\btyp\s+run\s+(\w+)")
 POLL_S = 0.05
