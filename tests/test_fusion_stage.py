@@ -168,6 +168,32 @@ def test_networks_load_back_as_saved(stage, project):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_trainings_on_two_processes_give_the_bytes_of_one(project, tmp_path):
+    # the plan's runs on two spawned workers, each started when its warm-start / pre-trained
+    # network is saved, write the same networks byte for byte as the trainings one after another
+    root, cfg = project
+    cfg = dataclasses.replace(cfg, methods=("none", "late", "attfuse"), seeds=1, steps=3, pretrain_steps=2)
+    roots = F.Roots.from_config(cfg, root)
+    saved = {}
+    for workers in (1, 2):
+        c = dataclasses.replace(cfg, workers=workers)
+        assert F.training_workers(c) == workers
+        bench = F.Benchmark(c, roots, tmp_path / f"w{workers}")
+        bench.train_all()
+        files = sorted((bench.out / "models").rglob("model.safetensors"))
+        saved[workers] = {str(p.relative_to(bench.out)): p.read_bytes() for p in files}
+        assert set(bench.seconds) == set(bench.plan.runs) and len(files) == len(bench.plan.runs)
+        assert all(t.curve for nets in bench.networks.values() for t in nets)
+    assert any(r.warm for r in bench.plan.runs.values()) and any(r.init for r in bench.plan.runs.values())
+    assert saved[1] == saved[2]
+
+
+def test_bad_worker_count_fails_at_load():
+    with pytest.raises(TypError) as err:
+        config_from_dict({"fusion": {"workers": -1}})
+    assert err.value.field == "fusion.workers"
+
+
 class _PerfectAgents(FusionModule):
     """A stand-in network that outputs exactly what its method learns from: for ``own`` targets
     every agent's own labels in its own frame, for ``fused`` the fused ground truth; the sample
