@@ -76,6 +76,8 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     if overrides:
         block = dataclasses.replace(block, **overrides)
         block.check("typ generate", "--references/--rsu")
+    # a real dataset's sensor is not one the re-simulation knows: its reference views are generated
+    block = dataclasses.replace(block, compose="generated")
     generator = load_generator(root, cfg)
     generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
     folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)

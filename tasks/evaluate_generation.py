@@ -19,6 +19,7 @@ pairs and given with a bootstrap interval over scenes and seeds (:mod:`tasks.gen
 """
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +31,7 @@ from tasks.pairs import iter_pairs
 from tasks.pipeline import TYPPipeline
 from tasks.selftrain import base_pipeline, resim_variant, variant_of, variants_to_run
 from typ.metrics.intervals import Interval
-from typ.resim import coverage_mask, hybrid
+from typ.resim import coverage_mask, hybrid, hybrid_points
 from typ.voxel import Grid, voxelize
 
 #: method key -> row label, in the report's order
@@ -71,19 +72,14 @@ class EvalSet:
 
 def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None = None) -> EvalSet:
     """Pairs (scenario ego -> every other agent) of every frame under ``split_root``."""
-    from tasks.stage2 import OWN_CAR_MARGIN
     from tasks.generate import EGO_CAR_LWH
-    from typ.resim import resimulate
 
     rows: dict[str, list] = {k: [] for k in ("scenes", "x_r", "y_r", "x_e", "resim", "seen", "boxes", "ego_points",
                                               "resim_points")}
-    l, w, h = EGO_CAR_LWH
-    own_car = np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
     t0 = time.perf_counter()
-    for i, p in enumerate(iter_pairs(split_root, grid, ego_only=True)):
-        if max_pairs is not None and i >= max_pairs:
-            break
-        points = resimulate(p.ego_points[:, :3], spec, exclude_boxes=own_car)
+    pairs = list(itertools.islice(iter_pairs(split_root, grid, ego_only=True), max_pairs))
+    resims = stage2.threaded_map(lambda p: stage2.resimulated_points(p.ego_points, spec, EGO_CAR_LWH), pairs)
+    for p, points in zip(pairs, resims):
         rows["scenes"].append(p.scenario)
         rows["x_r"].append(p.x_r)
         rows["y_r"].append(p.y_r.astype(np.float32))
@@ -155,8 +151,7 @@ def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int =
                 samples[name] = occ
             if name == typ_key:
                 hyb = hybrid(data.resim > 0.5, occ, data.seen)
-                hyb_points = [np.concatenate([data.resim_points[i][_in_seen(data.resim_points[i], data.seen[i], data.grid), :3],
-                                              points[i][~_in_seen(points[i], data.seen[i], data.grid), :3]])
+                hyb_points = [hybrid_points(data.resim_points[i][:, :3], points[i][:, :3], data.seen[i], data.grid)
                               for i in range(len(data))]
                 scores.setdefault("hybrid", []).append(score_method(data, hyb, hyb_points))
                 # sample-to-sample spread: the same pairs with other noise
@@ -168,14 +163,6 @@ def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int =
     return {"table": table, "seconds": seconds, "samples": samples, "typ": typ_key, "seeds": seeds,
             "resim_key": resim_variant(cfg.selftrain).name, "spread_iou": float(np.mean(spread)) if spread else None,
             "pairs": len(data), "scenes": len(set(data.scenes))}
-
-
-def _in_seen(points: np.ndarray, seen: np.ndarray, grid: Grid) -> np.ndarray:
-    ij = np.floor((points[:, :2] - grid.lower[:2]) / grid.voxel_size[:2]).astype(np.int64)
-    ok = (ij >= 0).all(axis=1) & (ij[:, 0] < seen.shape[0]) & (ij[:, 1] < seen.shape[1])
-    out = np.zeros(len(points), bool)
-    out[ok] = seen[ij[ok, 0], ij[ok, 1]]
-    return out
 
 
 def label(key: str) -> str:

@@ -46,6 +46,7 @@ from typ import distributed
 from typ.config import FusionConfig
 from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
+from typ.io import SCENARIO_MANIFEST, read_json_or_none
 
 PRETRAIN_SOURCES = ("colwaymo", "source")
 
@@ -222,7 +223,7 @@ class Benchmark:
                 "finetune_sets": {k: ("all" if v is None else v) for k, v in self.plan.finetune_sets.items()},
                 "train_frames": len(self.inputs("real")), "train_scenarios": len(set(self.inputs("real").scenarios)),
                 "runs": len(self.plan.runs), "trainings": len(self.plan.runs) * self.cfg.seeds,
-                "seconds_per_run": dict(self.seconds)}
+                "seconds_per_run": dict(self.seconds), "generated_compose": generated_compose(self.roots.generated_cavs)}
 
     def curves(self) -> dict[str, dict[str, list[dict]]]:
         """Training curves: run -> seed -> rows of (step, losses, learning rate)."""
@@ -231,6 +232,16 @@ class Benchmark:
     def test_inputs(self) -> Inputs:
         """The clean test split as network inputs."""
         return Inputs(list(self.test), self.cfg)
+
+
+def generated_compose(folder: Path) -> list[str]:
+    """What the generated scenarios under ``folder`` are made of (``generate.compose`` as each
+    scenario's manifest records it; ``generated`` where it records none)."""
+    found = set()
+    for scenario in list_scenarios(folder) if folder.is_dir() else []:
+        manifest = read_json_or_none(scenario / SCENARIO_MANIFEST) or {}
+        found.add(manifest.get("compose", "generated"))
+    return sorted(found)
 
 
 def dataset_options(cfg: FusionConfig) -> dict:

@@ -16,6 +16,10 @@ from typ.io import atomic_path, write_text
 BANDS = (("overall", "all"), ("0-30", "0–30"), ("30-50", "30–50"), ("50-100", "50–100"))
 KEYS = (("ap50", "AP@0.5"), ("ap70", "AP@0.7"))
 TABLE1_ROWS = {"ego": "ego's gt only", "oracle": "gt (oracle)", "generated": "TYP (generated)"}
+#: ``generate.compose`` values, as the report explains them
+COMPOSE_TEXT = {"generated": "TYP's sample alone",
+                "hybrid": "the ego's cloud re-simulated from the cooperating pose where the ego saw, TYP's sample "
+                          "elsewhere"}
 PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)"}
 
 
@@ -125,6 +129,9 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
              f"Every cell: mean over {results['seeds']} training seeds [95 % bootstrap interval over test scenarios "
              "and seeds]. \"A beats B\" only where the intervals do not overlap.", "",
              "## Oracle vs generated cooperating views (TYP Tables 1–2)", "",
+             *([f"Generated cooperating views: `generate.compose` = {', '.join(results['generated_compose'])} "
+                f"({'; '.join(COMPOSE_TEXT.get(c, c) for c in results['generated_compose'])}).", ""]
+               if results.get("generated_compose") else []),
              "| Method | Train data | " + " | ".join(f"{k} {b}" for _, k in KEYS for _, b in BANDS) + " |",
              "|---|---|" + "---|" * (len(KEYS) * len(BANDS))]
     for method, row in t.get("table1", {}).items():

@@ -25,16 +25,18 @@ from typ.config import GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
-from typ.io import atomic_path, hash_files, hash_obj, read_json_or_none, write_json
+from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_json
 from typ.scene import AgentView, Scene, vehicle_mask
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
-MANIFEST = "_typ.json"
+MANIFEST = SCENARIO_MANIFEST
 #: why a reference view or a scenario was not generated, counted per stage run
 SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_without_candidate_vehicle",
                 "roadside_unit_without_ground", "reference_view_empty")
 #: the ego's own car, which the ego's labels never contain but a reference sees
 EGO_CAR_LWH = (4.5, 1.85, 1.5)
+#: ``generate.compose``: what a reference view is made of (:class:`typ.config.GenerateConfig`)
+COMPOSE = ("generated", "hybrid")
 
 
 @dataclass(frozen=True)
@@ -158,17 +160,35 @@ def cav_references(scene: Scene, grid: Grid) -> list[Reference]:
 
 
 def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: int, *,
-                    resim_spec=None) -> list[np.ndarray]:
+                    sensor=None, compose: str = "generated") -> list[np.ndarray]:
     """Batched sampling for all references of a scenario: (N, 4) float32 clouds in each
     reference's sensor frame (``grid``: that sensor's grid), with the domain's point density
-    and intensity (:func:`tasks.pipeline.occupancy_to_points`)."""
+    and intensity (:func:`tasks.pipeline.occupancy_to_points`). ``sensor``: the reference
+    sensor (SensorSpec) re-simulation casts with, needed by a re-simulation-conditioned
+    generator and by ``compose="hybrid"`` (:class:`typ.config.GenerateConfig`), whose
+    re-simulated points get intensities drawn as the generated ones."""
+    from tasks.pipeline import draw_intensities
+    from tasks.stage2 import resimulated_points, threaded_map
+    from typ.resim import coverage_mask, hybrid_points
+
+    if compose not in COMPOSE:
+        raise TypError("params.yaml", "generate.compose", f"one of {COMPOSE}", compose)
+    resim_points = None
+    if pipe.conditions == 2 or compose == "hybrid":
+        if sensor is None:
+            raise TypError("tasks.generate", "sensor", "the reference sensor re-simulation casts with", None)
+        resim_points = list(threaded_map(lambda r: resimulated_points(r.ego_points, sensor, EGO_CAR_LWH), refs))
     resim = None
     if pipe.conditions == 2:
-        from tasks.stage2 import resimulated_view
-
-        resim = np.stack([resimulated_view(r.ego_points, resim_spec, grid) for r in refs]).astype(np.float32)
+        resim = np.stack([voxelize(p, grid).transpose(2, 0, 1) for p in resim_points]).astype(np.float32)
     occupancy = pipe.occupancy(np.stack([r.x_e for r in refs]), np.stack([r.y_r for r in refs]), seed=seed, resim=resim)
-    return [pipe.points(occ, grid, seed + k) for k, occ in enumerate(occupancy)]
+    clouds = [pipe.points(occ, grid, seed + k) for k, occ in enumerate(occupancy)]
+    if compose == "hybrid":
+        clouds = [hybrid_points(draw_intensities(resim_points[k], grid, pipe.point_stats,
+                                                 np.random.default_rng([seed, k, 1])),
+                                clouds[k], coverage_mask(r.ego_points, grid), grid)
+                  for k, r in enumerate(refs)]
+    return clouds
 
 
 def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, digest: str, grid: Grid) -> str:
@@ -221,7 +241,9 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
         # an empty view is still written (every agent has a view at every timestamp); counted
         skipped["reference_view_empty"] += sum(not r.x_e.any() and not r.y_r.any() for r in refs)
     all_refs = [r for _, refs in frames for r in refs]
-    clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, resim_spec=generator.resim_spec(gset.dataset))
+    resim = generator.pipe.conditions == 2 or cfg.compose == "hybrid"
+    sensor = generator.sensor(gset.dataset) if resim and all_refs else None
+    clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose)
                   if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
     with atomic_path(target) as tmp:
@@ -235,7 +257,7 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
                                                 where=f"generated:{folder.name}/{ref.agent_id}/{scene.timestamp}")
             # write_scene writes into a folder named like the scenario: name it after tmp
             write_scene(dataclasses.replace(scene, scenario=tmp.name, agents=views), tmp)
-        write_json(tmp / MANIFEST, {"key": key, "counts": counts, "references": gset.references,
+        write_json(tmp / MANIFEST, {"key": key, "counts": counts, "references": gset.references, "compose": cfg.compose,
                                     "generated_agents": sorted({r.agent_id for _, refs in frames for r in refs})})
     return {**base, "skipped": None, "seconds": time.perf_counter() - t0, **counts}
 
@@ -275,14 +297,13 @@ class Generator:
                            f"the LiDAR height of dataset {dataset!r} (known: {sorted(self.mount_height)})", "missing")
         return self.pipe.grid.for_sensor(self.mount_height[dataset])
 
-    def resim_spec(self, dataset: str):
-        """The sensor a re-simulation-conditioned generator re-simulates with (None for TYP's)."""
-        if self.pipe.conditions != 2:
-            return None
+    def sensor(self, dataset: str):
+        """The sensor re-simulation casts with in ``dataset``'s reference views (a re-simulation-
+        conditioned generator, or ``generate.compose: hybrid``): a simulated domain's."""
         from typ.sim.sensor import DOMAINS, domain_spec
 
         if dataset not in DOMAINS:
-            raise TypError("params.yaml", "selftrain.generator",
-                           f"typ for dataset {dataset!r}: typ_resim re-simulates with a known sensor "
-                           f"(one of {sorted(DOMAINS)})", "typ_resim")
+            raise TypError("params.yaml", "selftrain.generator / generate.compose",
+                           f"typ and generated for dataset {dataset!r}: re-simulation casts with a known sensor "
+                           f"(one of {sorted(DOMAINS)})", dataset)
         return domain_spec(dataset, azimuth_step_deg=self.azimuth_step_deg).sensor

@@ -134,13 +134,30 @@ def occupancy_to_points(occupancy: np.ndarray, grid: Grid, stats: PointStats, rn
     rep = np.repeat(np.arange(len(i)), n)
     lower = grid.lower + np.stack([i, j, k_idx], axis=1).astype(np.float64) * grid.voxel_size
     xyz = lower[rep] + rng.random((len(rep), 3)) * grid.voxel_size
-    u = rng.random(len(rep))
-    intensity = np.zeros(len(rep))
+    return np.concatenate([xyz, _intensities(band[rep], stats, rng)[:, None]], axis=1).astype(np.float32)
+
+
+def _intensities(band: np.ndarray, stats: PointStats, rng: np.random.Generator) -> np.ndarray:
+    """(N,) intensities drawn by inverse transform from the quantiles of each point's band."""
+    u = rng.random(len(band))
+    intensity = np.zeros(len(band))
     for b in np.unique(band):
         q = np.asarray(stats.intensity[b])
-        sel = band[rep] == b
+        sel = band == b
         intensity[sel] = np.interp(u[sel], np.linspace(0, 1, len(q)), q)
-    return np.concatenate([xyz, intensity[:, None]], axis=1).astype(np.float32)
+    return intensity
+
+
+def draw_intensities(points: np.ndarray, grid: Grid, stats: PointStats, rng: np.random.Generator) -> np.ndarray:
+    """(N, >=3) points in a sensor's frame -> (N, 4) float32 [x, y, z, intensity], the intensity
+    drawn as :func:`occupancy_to_points` draws it for the band of the point's BEV range (``grid``
+    is the sensor's grid, for the same banding as generated voxels: by the cell centre)."""
+    pts = np.asarray(points, dtype=np.float64)[:, :3]
+    edges = np.asarray(stats.band_edges)
+    cell = np.floor((pts[:, :2] - grid.lower[:2]) / grid.voxel_size[:2])
+    centre = grid.lower[:2] + (cell + 0.5) * grid.voxel_size[:2]
+    band = np.clip(np.searchsorted(edges, np.hypot(centre[:, 0], centre[:, 1]), side="right") - 1, 0, len(edges) - 2)
+    return np.concatenate([pts, _intensities(band, stats, rng)[:, None]], axis=1).astype(np.float32)
 
 
 @dataclass

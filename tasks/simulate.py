@@ -29,7 +29,7 @@ from typ import __version__
 from typ.config import SimulateConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
-from typ.io import atomic_path, code_digest, hash_obj, read_json_or_none, write_json
+from typ.io import SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_json
 import typ.formats.opv2v
 import typ.formats.pcd
 import typ.geometry
@@ -38,7 +38,7 @@ from typ.sim import simulate_scenario
 from typ.ssc import occupancy_path, scene_occupancy, write_occupancy
 import typ.ssc
 
-MANIFEST = "_typ.json"
+MANIFEST = SCENARIO_MANIFEST
 #: the simulator's and the writer's source: a change to either redoes every scenario
 _CODE = code_digest(typ.sim, typ.geometry, typ.formats.opv2v, typ.formats.pcd, typ.ssc)
 

@@ -63,37 +63,47 @@ class Tuples:
         return len(self.x_r)
 
 
-def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
-    """(C, H, W) bool: an ego cloud already moved into the reference frame, re-simulated from the
+def resimulated_points(ego_points: np.ndarray, spec, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
+    """(M, 3) float32: an ego cloud already moved into the reference frame, re-simulated from the
     reference pose with ``spec``'s beams (:func:`typ.resim.resimulate`), the reference vehicle's
-    own body (``ego_car_lwh`` around the sensor) left out."""
+    own body (``ego_car_lwh`` around the sensor, enlarged by ``OWN_CAR_MARGIN``) left out."""
     from typ.resim import resimulate
 
     l, w, h = ego_car_lwh
     own_car = np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
-    points = resimulate(np.asarray(ego_points)[:, :3], spec, exclude_boxes=own_car)
-    return voxelize(points, grid).transpose(2, 0, 1)
+    return resimulate(np.asarray(ego_points)[:, :3], spec, exclude_boxes=own_car)
+
+
+def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
+    """(C, H, W) bool: :func:`resimulated_points` voxelized on ``grid``."""
+    return voxelize(resimulated_points(ego_points, spec, ego_car_lwh), grid).transpose(2, 0, 1)
+
+
+def threaded_map(fn: Callable, items: Iterable, *, workers: int | None = None) -> Iterator:
+    """``fn(item)`` of each item, in order, ``workers`` at a time (default: torch's thread count,
+    the process's CPU budget), with no more than ``2 * workers`` items in flight. For work that
+    releases the GIL (the surfel fit and the ray cast of re-simulation: two threads do 16 views
+    in 0.6x the time of one, measured on source pairs, 2 cores); each call is computed alone,
+    so the results do not depend on ``workers``."""
+    workers = workers or max(1, torch.get_num_threads())
+    items = iter(items)
+    if workers == 1:
+        yield from (fn(item) for item in items)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > 2 * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 def resimulated_views(ego_clouds: Iterable[np.ndarray], spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5), *,
                       workers: int | None = None) -> Iterator[np.ndarray]:
-    """:func:`resimulated_view` of each cloud, in order, ``workers`` at a time (default: torch's
-    thread count, the process's CPU budget). The surfel fit and the ray cast release the GIL for
-    most of their 0.3 s a view, so two threads do 16 views in 0.6x the time of one (measured on
-    source pairs, 2 cores); each view is computed alone, so the bytes do not depend on ``workers``."""
-    workers = workers or max(1, torch.get_num_threads())
-    clouds = iter(ego_clouds)
-    if workers == 1:
-        yield from (resimulated_view(c, spec, grid, ego_car_lwh) for c in clouds)
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        pending: deque = deque()
-        for cloud in clouds:
-            pending.append(pool.submit(resimulated_view, cloud, spec, grid, ego_car_lwh))
-            if len(pending) > 2 * workers:  # a bounded window: no more clouds in memory than that
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
+    """:func:`resimulated_view` of each cloud, in order, on :func:`threaded_map`."""
+    return threaded_map(lambda cloud: resimulated_view(cloud, spec, grid, ego_car_lwh), ego_clouds, workers=workers)
 
 
 def collect(pairs: Iterable[Pair], *, grid: Grid, resim_spec=None, ego_car_lwh=(4.5, 1.85, 1.5),

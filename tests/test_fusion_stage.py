@@ -150,6 +150,14 @@ def test_report_and_metrics(stage, project):
     text = paths[0].read_text()
     assert "TYP Tables 1–2" in text and "TYP Table 3" in text and "V2X-ViT" in text and "Skipped" not in text
     assert "applied" in text and "[" in text
+    # the stand-in generated scenarios carry no manifest: the generator's sample alone
+    assert results["generated_compose"] == ["generated"] and "`generate.compose` = generated (TYP's sample" in text
+    manifest = next(iter(list_scenarios(bench.roots.generated_cavs))) / "_typ.json"
+    manifest.write_text(json.dumps({"compose": "hybrid"}))
+    try:
+        assert F.generated_compose(bench.roots.generated_cavs) == ["generated", "hybrid"]
+    finally:
+        manifest.unlink()
     metrics = json.loads(json.dumps(R.metrics_of(results)))
     assert metrics["table1"]["attfuse"]["generated"]["ap50"].keys() == set(BAND_NAMES)
     assert set(metrics["targets"]) >= {"no_fusion_ap50", "beats_no_fusion", "v2xvit_ge_late", "generated_over_oracle"}

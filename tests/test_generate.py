@@ -59,3 +59,49 @@ def test_reference_frame_boxes_and_ego_cloud():
     i = np.floor((moved[:, :3] - GRID.lower) / GRID.voxel_size).astype(int)
     assert ref.x_e.sum() == 2 and all(ref.x_e[k, x, y] for x, y, k in i)
     assert ref.y_r.shape == (1, 128, 128) and ref.y_r.sum() > 0
+
+
+def test_hybrid_views_are_resimulated_where_the_ego_saw_and_generated_elsewhere():
+    # generate.compose: hybrid keeps the re-simulated points in the cells the ego covered and the
+    # generator's points (the same sample as compose: generated) in every other cell
+    import pytest
+
+    from tasks.generate import Reference, generate_points
+    from tasks.stage2 import resimulated_points
+    from tests.test_pipeline import GRID as PGRID, _pipeline
+    from typ.errors import TypError
+    from typ.resim import coverage_mask, in_mask
+    from typ.sim import domain_spec, simulate_scenario
+    from typ.voxel import box_map, points_to_reference, voxelize
+
+    scene = simulate_scenario(domain="target", seed=2, n_frames=1, n_agents=1)[0]
+    ego = scene.ego
+    spec = domain_spec("target").sensor
+    grid = PGRID.for_sensor(spec.mount_height)
+    refs = []
+    for x, yaw in ((4.0, 0.0), (-6.0, 40.0)):
+        pose = pose_to_matrix([x, 1.0, 0.0, 0.0, 0.0, yaw])
+        moved = points_to_reference(ego.points, np.eye(4), pose)
+        refs.append(Reference(f"r{x:g}", pose, np.zeros((0, 7)), (), np.zeros(0, np.int64),
+                              voxelize(moved, grid).transpose(2, 0, 1), box_map(np.zeros((0, 7)), grid).transpose(2, 0, 1),
+                              moved))
+    pipe = _pipeline()
+    plain = generate_points(refs, pipe, grid, 5)
+    mixed = generate_points(refs, pipe, grid, 5, sensor=spec, compose="hybrid")
+    for ref, a, b in zip(refs, plain, mixed):
+        seen = coverage_mask(ref.ego_points, grid)
+        resim = resimulated_points(ref.ego_points, spec, EGO_CAR_LWH)
+        assert seen.any() and (~seen).any() and in_mask(resim, seen, grid).any()
+        assert b.dtype == np.float32 and b.shape[1] == 4
+        inside = in_mask(b, seen, grid)
+        assert np.array_equal(b[inside, :3], resim[in_mask(resim, seen, grid)])
+        assert np.array_equal(b[~inside], a[~in_mask(a, seen, grid)])
+        q = pipe.point_stats.intensity
+        assert b[inside, 3].min() >= min(map(min, q)) and b[inside, 3].max() <= max(map(max, q))
+        assert len(np.unique(b[inside, 3])) > 1           # drawn, not a constant
+    with pytest.raises(TypError) as err:
+        generate_points(refs, pipe, grid, 5, compose="hybrid")
+    assert err.value.field == "sensor"
+    with pytest.raises(TypError) as err:
+        generate_points(refs, pipe, grid, 5, sensor=spec, compose="mixed")
+    assert err.value.field == "generate.compose"

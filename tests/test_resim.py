@@ -264,3 +264,19 @@ def test_threaded_resimulation_gives_each_view_in_order_with_the_same_bytes():
         for g, o in zip(got, one):
             assert g.dtype == o.dtype and g.shape == o.shape and np.array_equal(g, o)
     assert list(resimulated_views(iter([]), SPEC, TINY_GRID, workers=2)) == []
+
+
+def test_hybrid_points_take_resim_points_inside_the_mask_and_generated_ones_outside():
+    from typ.resim import hybrid_points, in_mask
+    from typ.voxel import Grid
+
+    grid = Grid((-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0), (4, 4, 2))
+    mask = np.zeros((4, 4), bool)
+    mask[0, :] = True                                      # x in [-2, -1)
+    a = np.array([[-1.5, 0.2, 0.0, 1.0], [0.5, 0.5, 0.0, 2.0], [-9.0, 0.0, 0.0, 3.0]], np.float32)
+    b = np.array([[-1.2, -1.8, 0.0, 4.0], [1.5, 1.9, 0.0, 5.0]], np.float32)
+    assert in_mask(a, mask, grid).tolist() == [True, False, False]   # outside the grid: not in it
+    out = hybrid_points(a, b, mask, grid)
+    assert out.dtype == np.float32 and np.array_equal(out, np.stack([a[0], b[1]]))
+    with pytest.raises(TypError):
+        hybrid_points(a, b[:, :3], mask, grid)

@@ -463,6 +463,10 @@ class GenerateConfig:
     generator: str
     out: str
     workers: int
+    #: what a reference view is made of: ``generated`` — the generator's sample alone (TYP);
+    #: ``hybrid`` — the ego's cloud re-simulated from the reference pose in the BEV cells the ego
+    #: saw, the generator's sample elsewhere (the ``hybrid`` row of reports/generation_accuracy.md)
+    compose: Literal["generated", "hybrid"] = "generated"
 
     def check(self, where: str, name: str) -> None:
         _positive_fields(self, where, name, "references_per_frame", "sample_steps", "max_distance", "workers")

@@ -18,6 +18,10 @@ from typing import Iterator
 TMP_PREFIX = ".tmp-"
 
 
+#: the manifest a per-scene stage (simulate, generate) writes beside each scenario it made
+SCENARIO_MANIFEST = "_typ.json"
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.

@@ -296,3 +296,25 @@ def hybrid(resim_occ, generated_occ, mask, *, layout: str = "CHW") -> np.ndarray
     if m.shape != expected:
         raise TypError(where, "mask", f"shape (..., H, W) = {expected} for layout {layout}", m.shape)
     return np.where(m[..., None] if layout == "HWC" else m[..., None, :, :], a, b)
+
+
+def in_mask(points, mask, grid: Grid) -> np.ndarray:
+    """(N,) bool: which of ``points`` (N, >=2), in ``grid``'s frame, fall in a BEV cell where
+    ``mask`` (H, W) is True; points outside the grid are not."""
+    pts, m = np.asarray(points), np.asarray(mask)
+    ij = np.floor((pts[:, :2] - grid.lower[:2]) / grid.voxel_size[:2]).astype(np.int64)
+    ok = (ij >= 0).all(axis=1) & (ij[:, 0] < m.shape[0]) & (ij[:, 1] < m.shape[1])
+    out = np.zeros(len(pts), bool)
+    out[ok] = m[ij[ok, 0], ij[ok, 1]]
+    return out
+
+
+def hybrid_points(resim_points, generated_points, mask, grid: Grid) -> np.ndarray:
+    """The cloud :func:`hybrid` describes: the points of ``resim_points`` in the BEV cells of
+    ``grid`` where ``mask`` (H, W) is True and those of ``generated_points`` elsewhere, both
+    (N, F) with the same columns, in that order."""
+    a, b = np.asarray(resim_points), np.asarray(generated_points)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
+        raise TypError("typ.resim.hybrid_points", "generated_points", f"(N, {a.shape[-1]}) like resim_points",
+                       b.shape)
+    return np.concatenate([a[in_mask(a, mask, grid)], b[~in_mask(b, mask, grid)]]).astype(np.result_type(a, b))
