@@ -8,7 +8,10 @@ the gallery:
   range band, seen / unseen cells, above the ground, object hit rate, Chamfer, JSD / MMD
   (r2dm preset), TYP Table 4 (adaptation ablation) and Table 5 (one- vs two-stage) analogues,
   the adaptation's source -> target distance, the sample-to-sample spread;
-- ``reports/gallery/``: ego, x_e', generated, true and re-simulated views side by side.
+- ``reports/gallery/``: ego, x_e', generated, true and re-simulated views side by side;
+- the collaborative detection benchmark (:func:`tasks.fusion.score_trained` of the networks the
+  fusion stage saved): AP@0.5 / 0.7 by range on real_cav's test split for TYP Tables 1–3 and
+  the robustness sweeps, ``reports/fusion.md`` and its plots.
 
 Figures are pooled over pairs and given as ``value [low, high]``, a 95 % bootstrap interval
 over scenes and training seeds (:mod:`typ.metrics.intervals`); a report says one method
@@ -16,6 +19,7 @@ over scenes and training seeds (:mod:`typ.metrics.intervals`); a report says one
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +28,8 @@ from tasks import evaluate_generation as gen
 from tasks import genscore, selftrain
 from typ.io import write_text
 from typ.metrics.intervals import Interval
+
+LOG = logging.getLogger(__name__)
 
 GENERATION_REPORT = Path("reports") / "generation_accuracy.md"
 #: the methods whose curves dvc.yaml's plots declare (a method that did not run is an empty column)
@@ -210,7 +216,32 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
             from typ.viz import sample_figure
 
             run.log_figure(sample_figure(s, grid), f"gallery/{s['name']}.png")
+    fusion_metrics, fusion_paths, fusion_lines = fusion_section(cfg, root)
+    metrics["fusion"] = fusion_metrics
     summary = "\n".join(["# typ evaluate", "", *comparisons(result["table"], [
         (result["typ"], "naive_copy", "iou"), (result["typ"], "stage1_only", "iou"),
-        (result["resim_key"], "resim", "iou")])])
-    return EvaluateResult(metrics, [report, bands], summary)
+        (result["resim_key"], "resim", "iou")]), "", *fusion_lines])
+    return EvaluateResult(metrics, [report, bands, *fusion_paths], summary)
+
+
+def fusion_section(cfg, root: Path) -> tuple[dict, list[Path], list[str]]:
+    """The fusion benchmark scored on the networks the fusion stage saved: its metrics, report
+    files and summary lines; without any saved network, the reason it was skipped (logged)."""
+    from tasks import fusion_report, fusion_score
+
+    block = cfg.fusion
+    if not (root / block.out / "models").is_dir():
+        reason = f"{block.out}/models does not exist (the fusion stage trains the networks)"
+        LOG.warning("evaluate: fusion benchmark skipped: %s", reason)
+        return {"skipped": reason}, [], [f"Fusion benchmark skipped: {reason}."]
+    results = fusion_score.score_trained(block, root)
+    paths = fusion_report.write_report(results, block, root / block.reports)
+    metrics = fusion_report.metrics_of(results)
+    t1 = metrics["table1"]
+    lines = ["## Collaborative detection (real_cav test, AP@0.5 overall)", ""]
+    for method, rows in t1.items():
+        for data, cell in rows.items():
+            v = (cell or {}).get("ap50", {}).get("overall") if cell else None
+            if v:
+                lines.append(f"- {method}, {data}: {v['value']:.2f} [{v['low']:.2f}, {v['high']:.2f}]")
+    return metrics, paths, lines

@@ -17,12 +17,14 @@ Runs (:class:`Run`) are trained once per training seed; the single-agent detecto
 (run ``<prefix>-late``) is what early / intermediate fusion of that data start from
 (``warm_start``). Runs are trained in dependency order, each saved under
 ``<out>/models/<run>/seed<k>/`` (safetensors + JSON) and resumable from
-``<out>/checkpoints/``. On the CPU, ``workers`` trainings run at once, each in a spawned process
+``<out>/checkpoints/``. On the CPU, ``processes`` trainings run at once, each in a spawned process
 on one thread and started as soon as the network it starts from is saved: these small networks
 keep one core busy each, where one training on two threads gains about a third (on 2 cores, two
 at a time train 1.9x the steps per second of one on both). Every training runs on one thread
-even alone, so the bytes do not depend on ``workers``. Scoring is :func:`tasks.fusion_score.score` on the trained networks;
-reports are :func:`tasks.fusion_report.write_report` of its results.
+even alone, so the bytes do not depend on ``processes``. This stage trains and saves the networks
+(and ``training.json``: what it ran, in how long); the evaluate stage scores them
+(:func:`tasks.fusion_score.score_trained`) and writes the reports
+(:func:`tasks.fusion_report.write_report`).
 """
 from __future__ import annotations
 
@@ -34,13 +36,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from models.fusion import METHODS, SINGLE_AGENT
-from tasks import fusion_score
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset
-from tasks.fusion_score import Cell
 from tasks.fusion_train import Trained, load, save, train
 from typ import distributed
 from typ.config import FusionConfig
@@ -76,6 +77,18 @@ def unavailable(folder: Path) -> str | None:
     if not list_scenarios(folder):
         return f"{folder} holds no scenario"
     return None
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One number of a table: ``method`` run with the networks of training run ``run`` (one per
+    seed) lands at ``table[method][row][column]`` (column None: the row is the cell)."""
+
+    table: str
+    method: str
+    row: str
+    column: str | None
+    run: str
 
 
 @dataclass(frozen=True)
@@ -215,16 +228,6 @@ class Benchmark:
     def model_folder(self, run: str, seed: int) -> Path:
         return model_folder(self.out, run, seed)
 
-    def score(self, progress: Callable[[str], None] | None = None) -> dict:
-        """:func:`tasks.fusion_score.score` of the trained networks, with what the stage ran."""
-        results = fusion_score.score(self.cfg, self.test, self.networks, self.plan.cells, self.plan.robustness,
-                                     progress=progress)
-        return {**results, "skipped": dict(self.plan.skipped),
-                "finetune_sets": {k: ("all" if v is None else v) for k, v in self.plan.finetune_sets.items()},
-                "train_frames": len(self.inputs("real")), "train_scenarios": len(set(self.inputs("real").scenarios)),
-                "runs": len(self.plan.runs), "trainings": len(self.plan.runs) * self.cfg.seeds,
-                "seconds_per_run": dict(self.seconds), "generated_compose": generated_compose(self.roots.generated_cavs)}
-
     def curves(self) -> dict[str, dict[str, list[dict]]]:
         """Training curves: run -> seed -> rows of (step, losses, learning rate)."""
         return {name: {str(t.seed): t.curve for t in nets} for name, nets in self.networks.items()}
@@ -289,10 +292,10 @@ class Job:
 
 
 def training_workers(cfg: FusionConfig) -> int:
-    """How many trainings run at once: ``cfg.workers``, or (0) torch's thread count on the CPU and
+    """How many trainings run at once: ``cfg.processes``, or (0) torch's thread count on the CPU and
     1 on an accelerator or under ``torchrun``."""
-    if cfg.workers:
-        return cfg.workers
+    if cfg.processes:
+        return cfg.processes
     if distributed.world_size() > 1 or distributed.device().type != "cpu":
         return 1
     return max(1, torch.get_num_threads())
@@ -367,6 +370,23 @@ def _train_in_pool(cfg: FusionConfig, roots: Roots, jobs: list[Job], workers: in
                 seconds[i] = future.result()        # a worker's error is raised here
                 done.add(jobs[i].folder)
     return seconds
+
+
+TRAINING_JSON = "training.json"
+
+
+def training_summary(bench: Benchmark, seconds_total: float) -> dict:
+    """What the training stage ran (``<out>/training.json``): runs, trainings, seconds per run, and
+    each run's last logged losses (mean over seeds)."""
+    last = {}
+    for name, nets in bench.networks.items():
+        rows = [t.curve[-1] for t in nets if t.curve]
+        if rows:
+            last[name] = {k: round(float(np.mean([r[k] for r in rows])), 6) for k in ("loss", "cls_loss", "reg_loss")}
+    return {"runs": len(bench.plan.runs), "trainings": len(bench.plan.runs) * bench.cfg.seeds,
+            "seeds": bench.cfg.seeds, "processes": training_workers(bench.cfg), "seconds_total": round(seconds_total, 3),
+            "seconds_training": round(sum(bench.seconds.values()), 3), "seconds_per_run": dict(bench.seconds),
+            "final_losses": last}
 
 
 def load_networks(cfg: FusionConfig, roots: Roots, out: Path) -> dict[str, list[Trained]]:

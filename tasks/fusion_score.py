@@ -27,6 +27,7 @@ import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -34,10 +35,12 @@ import torch
 from models.fusion import METHODS, compressed
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, boxes_in_range
+from tasks.fusion import TRAINING_JSON, Benchmark, Cell, generated_compose, load_networks
 from tasks.fusion_train import Trained
 from typ import distributed
 from typ.boxes_bev import nms_bev
 from typ.config import FusionConfig
+from typ.io import read_json_or_none
 from typ.metrics.detection import FrameMatches, ap_of_frames, frame_matches, pr_curves
 from typ.metrics.intervals import bootstrap
 
@@ -107,18 +110,6 @@ def pr_curve(preds, inputs: Inputs, iou_thr: float = 0.5) -> dict[str, list[floa
     the ranking; without OpenCOOD's padding point (recall 1, precision 0), which no detection reached."""
     c = pr_curves(preds, [s.gt_boxes for s in inputs.samples], iou_thr=iou_thr)["overall"]
     return {"recall": c.mrec[1:-1].round(4).tolist(), "precision": c.mpre[1:-1].round(4).tolist()}
-
-
-@dataclass(frozen=True)
-class Cell:
-    """One number of a table: ``method`` run with the networks of training run ``run`` (one per
-    seed) lands at ``table[method][row][column]`` (column None: the row is the cell)."""
-
-    table: str
-    method: str
-    row: str
-    column: str | None
-    run: str
 
 
 def _effective(perturbation: dict) -> dict:
@@ -264,3 +255,29 @@ def score(cfg: FusionConfig, test: FusionDataset, networks: Mapping[str, Sequenc
         progress(f"robustness of {len(robustness_runs)} methods")
     return {**test_summary(scorer.inputs()), "seeds": cfg.seeds, "tables": tables,
             "robustness": robustness(scorer, robustness_runs)}
+
+
+def score_benchmark(bench: Benchmark, progress: Callable[[str], None] | None = None) -> dict:
+    """:func:`score` of ``bench``'s trained networks on its test split, with what the stage ran."""
+    results = score(bench.cfg, bench.test, bench.networks, bench.plan.cells, bench.plan.robustness, progress=progress)
+    real = bench.inputs("real")
+    return {**results, "skipped": dict(bench.plan.skipped),
+            "finetune_sets": {k: ("all" if v is None else v) for k, v in bench.plan.finetune_sets.items()},
+            "train_frames": len(real), "train_scenarios": len(set(real.scenarios)),
+            "runs": len(bench.plan.runs), "trainings": len(bench.plan.runs) * bench.cfg.seeds,
+            "seconds_per_run": dict(bench.seconds), "generated_compose": generated_compose(bench.roots.generated_cavs)}
+
+
+def score_trained(cfg: FusionConfig, root: Path) -> dict:
+    """:func:`score_benchmark` of the networks the fusion stage saved under ``root / cfg.out``
+    (what the evaluate stage scores), with the training stage's times; a missing or damaged
+    network raises naming its file and the fusion stage."""
+    from tasks.fusion import Roots
+
+    roots, out = Roots.from_config(cfg, root), root / cfg.out
+    bench = Benchmark(cfg, roots, out)
+    bench.networks = load_networks(cfg, roots, out)
+    training = read_json_or_none(out / TRAINING_JSON) or {}
+    return {**score_benchmark(bench), "seconds_total": training.get("seconds_total", 0.0),
+            "seconds_training": training.get("seconds_training", 0.0),
+            "seconds_per_run": training.get("seconds_per_run", {})}

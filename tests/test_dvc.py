@@ -38,6 +38,16 @@ def test_metric_code_reaches_evaluate_but_not_training():
     assert (ROOT / metric) in closure("flows.evaluate")
 
 
+def test_detection_scoring_code_reaches_evaluate_but_not_fusion_training():
+    """Editing the AP metric or the fusion report re-runs evaluate alone: the fusion stage trains."""
+    for code in ("typ/metrics/detection.py", "tasks/fusion_score.py", "tasks/fusion_report.py"):
+        users = sorted(s for s in DVC if code in DVC[s]["deps"])
+        assert users == ["evaluate"], (code, users)
+    assert "artifacts/fusion/models" in DVC["evaluate"]["deps"]
+    outs = {next(iter(o)) if isinstance(o, dict) else o for k in ("outs", "plots") for o in DVC["evaluate"].get(k, [])}
+    assert {"reports/fusion.md", "reports/fusion_pr.png", "reports/fusion_robustness.png"} <= outs
+
+
 def test_training_stages_read_no_held_out_split():
     """Adding a held-out scene retrains nothing: training stages depend on training data only."""
     for stage in ("vqvae", "stage1", "adapt", "stage2", "selftrain"):

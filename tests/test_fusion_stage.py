@@ -13,6 +13,7 @@ from models.fusion import METHODS, FusionModule, LateFusion
 from tasks import fusion as F
 from tasks import fusion_report as R
 from tasks.fusion_batch import Inputs
+from tasks import fusion_score
 from tasks.fusion_score import Scorer, fill_tables
 from tasks.fusion_train import Trained, box_coder, build_model
 from typ.config import config_from_dict
@@ -75,7 +76,7 @@ def stage(project):
     root, cfg = project
     bench = F.Benchmark(cfg, F.Roots.from_config(cfg, root), root / "artifacts" / "fusion")
     bench.train_all()
-    return bench, bench.score()
+    return bench, fusion_score.score_benchmark(bench)
 
 
 def _numbers(cell) -> bool:
@@ -184,7 +185,7 @@ def test_trainings_on_two_processes_give_the_bytes_of_one(project, tmp_path):
     roots = F.Roots.from_config(cfg, root)
     saved = {}
     for workers in (1, 2):
-        c = dataclasses.replace(cfg, workers=workers)
+        c = dataclasses.replace(cfg, processes=workers)
         assert F.training_workers(c) == workers
         bench = F.Benchmark(c, roots, tmp_path / f"w{workers}")
         bench.train_all()
@@ -198,8 +199,8 @@ def test_trainings_on_two_processes_give_the_bytes_of_one(project, tmp_path):
 
 def test_bad_worker_count_fails_at_load():
     with pytest.raises(TypError) as err:
-        config_from_dict({"fusion": {"workers": -1}})
-    assert err.value.field == "fusion.workers"
+        config_from_dict({"fusion": {"processes": -1}})
+    assert err.value.field == "fusion.processes"
 
 
 class _PerfectAgents(FusionModule):

@@ -242,7 +242,9 @@ def test_generated_dataset_is_opv2v_with_a_second_agent(project):
 
 def test_fusion_benchmark_trains_every_method_on_oracle_and_generated_cavs(project):
     proj, _, _ = project
-    fu = json.loads((proj / "metrics" / "fusion.json").read_text())
+    trained = json.loads((proj / "metrics" / "fusion.json").read_text())   # the fusion stage trains ...
+    assert trained["trainings"] == trained["runs"] and set(trained["final_losses"]) == set(trained["seconds_per_run"])
+    fu = json.loads((proj / "metrics" / "evaluate.json").read_text())["fusion"]   # ... evaluate scores
     methods = ("early", "late", "attfuse", "v2xvit")
     assert set(fu["table1"]) == {"none", *methods} and set(fu["table1"]["none"]) == {"ego"}
     for m in methods:

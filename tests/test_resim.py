@@ -273,9 +273,10 @@ def test_hybrid_points_take_resim_points_inside_the_mask_and_generated_ones_outs
     grid = Grid((-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0), (4, 4, 2))
     mask = np.zeros((4, 4), bool)
     mask[0, :] = True                                      # x in [-2, -1)
-    a = np.array([[-1.5, 0.2, 0.0, 1.0], [0.5, 0.5, 0.0, 2.0], [-9.0, 0.0, 0.0, 3.0]], np.float32)
+    a = np.array([[-1.5, 0.2, 0.0, 1.0], [0.5, 0.5, 0.0, 2.0], [-9.0, 0.0, 0.0, 3.0], [-1.5, 0.2, -1.5, 6.0]],
+                 np.float32)                              # the last one under the grid's height range
     b = np.array([[-1.2, -1.8, 0.0, 4.0], [1.5, 1.9, 0.0, 5.0]], np.float32)
-    assert in_mask(a, mask, grid).tolist() == [True, False, False]   # outside the grid: not in it
+    assert in_mask(a, mask, grid).tolist() == [True, False, False, True]   # outside the grid: not in it
     out = hybrid_points(a, b, mask, grid)
     assert out.dtype == np.float32 and np.array_equal(out, np.stack([a[0], b[1]]))
     with pytest.raises(TypError):

@@ -603,7 +603,7 @@ class FusionConfig:
     grid); its labels outside are not used with generated clouds. ``min_gt_points``: a vehicle is
     ground truth when at least this many points of all agents' true clouds fall in its box
     (V2V4Real labels what the fused LiDAR sees; 0: every vehicle within range, as OPV2V).
-    ``workers``: trainings run at once, each in its own process on one thread (0: torch's thread
+    ``processes``: trainings run at once, each in its own process on one thread (0: torch's thread
     count on the CPU, 1 on an accelerator); the trained bytes do not depend on it.
     """
 
@@ -634,7 +634,7 @@ class FusionConfig:
     bootstrap: int
     seed: int
     checkpoint_every: int
-    workers: int
+    processes: int
     sim: str
     generated: str
     real_domain: str
@@ -671,8 +671,9 @@ class FusionConfig:
                 raise TypError(where, f"{name}.{key}", "a number in [0, 1)", getattr(self, key))
         if self.min_gt_points < 0:
             raise TypError(where, f"{name}.min_gt_points", "a point count >= 0", self.min_gt_points)
-        if self.workers < 0:
-            raise TypError(where, f"{name}.workers", "a process count >= 0 (0: one per CPU thread)", self.workers)
+        if self.processes < 0:
+            raise TypError(where, f"{name}.processes", "a process count >= 0 (0: one per CPU thread)",
+                           self.processes)
 
     @property
     def training_seeds(self) -> tuple[int, ...]:

@@ -310,11 +310,14 @@ def in_mask(points, mask, grid: Grid) -> np.ndarray:
 
 
 def hybrid_points(resim_points, generated_points, mask, grid: Grid) -> np.ndarray:
-    """The cloud :func:`hybrid` describes: the points of ``resim_points`` in the BEV cells of
-    ``grid`` where ``mask`` (H, W) is True and those of ``generated_points`` elsewhere, both
-    (N, F) with the same columns, in that order."""
+    """The cloud :func:`hybrid` describes: the points of ``resim_points`` in the voxels of ``grid``
+    whose BEV cell ``mask`` (H, W) marks (inside the grid's height range too, as a generated view
+    is) and those of ``generated_points`` in the other cells, both (N, F) with the same columns,
+    in that order."""
     a, b = np.asarray(resim_points), np.asarray(generated_points)
     if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
         raise TypError("typ.resim.hybrid_points", "generated_points", f"(N, {a.shape[-1]}) like resim_points",
                        b.shape)
-    return np.concatenate([a[in_mask(a, mask, grid)], b[~in_mask(b, mask, grid)]]).astype(np.result_type(a, b))
+    z0 = grid.lower[2]
+    in_height = (a[:, 2] >= z0) & (a[:, 2] < z0 + grid.shape[2] * grid.voxel_size[2])
+    return np.concatenate([a[in_mask(a, mask, grid) & in_height], b[~in_mask(b, mask, grid)]]).astype(np.result_type(a, b))
