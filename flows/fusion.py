@@ -29,7 +29,8 @@ def fusion_flow(params: str = "params.yaml", root: str = ".") -> dict:
         metrics = stage.training_summary(bench, timer.seconds)
         write_json(out / stage.TRAINING_JSON, metrics)
         write_json(out / "curves.json", bench.curves())
-        finish_stage(STAGE, run, metrics, root_path, artifacts=[out / stage.TRAINING_JSON, out / "curves.json"])
+        loss = stage.write_loss_curve(bench, out / "loss.csv")
+        finish_stage(STAGE, run, metrics, root_path, artifacts=[out / stage.TRAINING_JSON, out / "curves.json", loss])
         test = bench.test_inputs()
         for method, oracle in bench.plan.robustness.items():   # Table 1's oracle detectors, servable from MLflow
             served = ServedDetector(bench.networks[oracle][0].as_method(method)).eval()

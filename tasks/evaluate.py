@@ -236,6 +236,7 @@ def fusion_section(cfg, root: Path) -> tuple[dict, list[Path], list[str]]:
         return {"skipped": reason}, [], [f"Fusion benchmark skipped: {reason}."]
     results = fusion_score.score_trained(block, root)
     paths = fusion_report.write_report(results, block, root / block.reports)
+    paths += fusion_report.write_plot_data(results, root / block.reports / "plots")
     metrics = fusion_report.metrics_of(results)
     t1 = metrics["table1"]
     lines = ["## Collaborative detection (real_cav test, AP@0.5 overall)", ""]

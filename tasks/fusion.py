@@ -201,13 +201,13 @@ class Benchmark:
         return self._inputs[data]
 
     def train_all(self) -> dict[str, list[Trained]]:
-        """Every run of the plan, every seed, in dependency order, on :func:`training_workers`
+        """Every run of the plan, every seed, in dependency order, on :func:`training_processes`
         processes (module doc); weights under ``<out>/models/``."""
         jobs = [Job(run, seed, self.out, None if run.init is None else self.model_folder(run.init, seed),
                     None if run.warm is None else self.model_folder(run.warm, seed))
                 for run in self.plan.runs.values() if run.name not in self.networks
                 for seed in self.cfg.training_seeds]
-        workers = training_workers(self.cfg)
+        workers = training_processes(self.cfg)
         if workers == 1:
             seconds = [train_job(self.cfg, job, self.inputs(job.run.data)) for job in jobs]
         else:
@@ -291,7 +291,7 @@ class Job:
         return model_folder(self.out, self.run.name, self.seed)
 
 
-def training_workers(cfg: FusionConfig) -> int:
+def training_processes(cfg: FusionConfig) -> int:
     """How many trainings run at once: ``cfg.processes``, or (0) torch's thread count on the CPU and
     1 on an accelerator or under ``torchrun``."""
     if cfg.processes:
@@ -375,6 +375,18 @@ def _train_in_pool(cfg: FusionConfig, roots: Roots, jobs: list[Job], workers: in
 TRAINING_JSON = "training.json"
 
 
+def write_loss_curve(bench: Benchmark, path: Path) -> Path:
+    """The single-agent detector's training loss against step on the true and on the generated
+    cooperating views (Table 1's runs, first seed) as a ``dvc plots`` table (:func:`typ.plots.loss_curve`):
+    columns ``step``, ``oracle``, ``generated`` (empty where a run was not trained)."""
+    from typ import plots
+
+    curves = {data: {row["step"]: row["loss"] for row in bench.networks[f"{data}-{SINGLE_AGENT}"][0].curve}
+              if f"{data}-{SINGLE_AGENT}" in bench.networks else {} for data in ("oracle", "generated")}
+    steps = sorted(set().union(*curves.values()))
+    return plots.loss_curve(path, steps, {d: [c.get(k) for k in steps] for d, c in curves.items()})
+
+
 def training_summary(bench: Benchmark, seconds_total: float) -> dict:
     """What the training stage ran (``<out>/training.json``): runs, trainings, seconds per run, and
     each run's last logged losses (mean over seeds)."""
@@ -384,7 +396,7 @@ def training_summary(bench: Benchmark, seconds_total: float) -> dict:
         if rows:
             last[name] = {k: round(float(np.mean([r[k] for r in rows])), 6) for k in ("loss", "cls_loss", "reg_loss")}
     return {"runs": len(bench.plan.runs), "trainings": len(bench.plan.runs) * bench.cfg.seeds,
-            "seeds": bench.cfg.seeds, "processes": training_workers(bench.cfg), "seconds_total": round(seconds_total, 3),
+            "seeds": bench.cfg.seeds, "processes": training_processes(bench.cfg), "seconds_total": round(seconds_total, 3),
             "seconds_training": round(sum(bench.seconds.values()), 3), "seconds_per_run": dict(bench.seconds),
             "final_losses": last}
 

@@ -112,7 +112,7 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
     d = cfg.detector
     t = results["tables"]
     by_band = ", ".join(f"{k} m: {v}" for k, v in results["test_gt_boxes_by_band"].items())
-    lines = ["# Collaborative detection benchmark (stage `fusion`)", "",
+    lines = ["# Collaborative detection benchmark (trained by stage `fusion`, scored by `evaluate`)", "",
              f"PointPillars ({d.voxel_size} m pillars over x {d.lidar_range[0]:g}..{d.lidar_range[3]:g} m, "
              f"y {d.lidar_range[1]:g}..{d.lidar_range[4]:g} m) with each fusion method; AP by range with "
              "OpenCOOD's conventions (BEV IoU, frame-order ranking, VOC all-point AP). "
@@ -124,8 +124,8 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
              + (f"{cfg.warm_start_steps} steps from it" if cfg.warm_start else "as many from scratch")
              + f", fine-tuning {cfg.finetune_steps}; batch {cfg.batch_size}, {cfg.lr_schedule} learning rate, "
              f"augmentation (flip {cfg.augment.flip}, ±{cfg.augment.rotation_deg:g}°, scale "
-             f"{cfg.augment.scale[0]:g}–{cfg.augment.scale[1]:g}). Stage time {results['seconds_total']:.0f} s, "
-             f"{results['seconds_training']:.0f} s of it training.", "",
+             f"{cfg.augment.scale[0]:g}–{cfg.augment.scale[1]:g}). Training stage: {results['seconds_total']:.0f} s "
+             f"wall, {results['seconds_training']:.0f} s of training summed over the runs (several run at once).", "",
              f"Every cell: mean over {results['seeds']} training seeds [95 % bootstrap interval over test scenarios "
              "and seeds]. \"A beats B\" only where the intervals do not overlap.", "",
              "## Oracle vs generated cooperating views (TYP Tables 1–2)", "",
@@ -175,8 +175,9 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
     if results.get("skipped"):
         lines += ["", "## Skipped", ""] + [f"- {k}: {v}" for k, v in results["skipped"].items()]
     lines += ["", "Plots: [PR curves](fusion_pr.png), [robustness](fusion_robustness.png). "
-              "All numbers: `metrics/fusion.json`, `artifacts/fusion/results.json`; training curves: "
-              "`artifacts/fusion/curves.json`.", ""]
+              "All numbers: `metrics/evaluate.json` (`fusion`); plot data: `reports/plots/fusion_*.csv` "
+              "(`dvc plots show`); training: `metrics/fusion.json`, `artifacts/fusion/curves.json`, "
+              "`artifacts/fusion/loss.csv`.", ""]
     return "\n".join(lines)
 
 
@@ -249,3 +250,54 @@ def write_report(results: dict, cfg: FusionConfig, folder: Path) -> list[Path]:
     _savefig(fig, rob_png)
     plt.close(fig)
     return [md, pr_png, rob_png]
+
+
+#: the (method, training data) columns of Table 1 in the plot data, for every registered method
+#: (a column of a method or row not run stays empty, so dvc.yaml can declare them all)
+TABLE1_COLUMNS = tuple((m, d) for m in METHODS for d in (("ego",) if METHODS[m].inputs == "ego"
+                                                          else ("oracle", "generated")))
+#: recall grid of the PR table (the interpolated precision is a step function of recall)
+PR_RECALL = tuple(round(0.01 * k, 2) for k in range(101))
+
+
+def _interpolated_precision(curve: dict, recall: float) -> float | None:
+    """OpenCOOD's interpolated precision at ``recall``: the best precision at any recall >= it."""
+    ps = [p for r, p in zip(curve["recall"], curve["precision"]) if r >= recall - 1e-12]
+    return max(ps) if ps else None
+
+
+def write_plot_data(results: dict, folder: Path) -> list[Path]:
+    """The curves of the report as tables for ``dvc plots`` (:mod:`typ.plots`): ``fusion_pr.csv``
+    (interpolated precision of each Table 1 cell's first seed on a 0.01 recall grid, one column
+    ``<method>_<data>``), and AP@0.5 overall against each robustness sweep, one column per method:
+    ``fusion_position_std.csv``, ``fusion_heading_std.csv``, ``fusion_delay.csv`` (x: the delay
+    actually applied, ms) and ``fusion_bits.csv`` (x: feature bits)."""
+    from typ import plots
+
+    t1 = results["tables"].get("table1", {})
+    pr = {f"{m}_{d}": [None] * len(PR_RECALL) for m, d in TABLE1_COLUMNS}
+    for (m, d) in TABLE1_COLUMNS:
+        cell = t1.get(m, {}).get(d)
+        if cell and cell.get("pr"):
+            pr[f"{m}_{d}"] = [_interpolated_precision(cell["pr"], r) for r in PR_RECALL]
+    paths = [plots.write_table(folder / "fusion_pr.csv", {"recall": list(PR_RECALL), **pr})]
+    rob = results["robustness"]
+
+    def overall(cells):
+        return [(c["ap50"]["overall"] or {}).get("value") for c in cells]
+
+    for sweep, name, x in (("position_std", "fusion_position_std.csv", "position_std_m"),
+                           ("heading_std_deg", "fusion_heading_std.csv", "heading_std_deg"),
+                           ("delay_ms", "fusion_delay.csv", "delay_ms")):
+        levels = rob["applied_delay_ms"] if sweep == "delay_ms" else rob["levels"][sweep]
+        series = {m: overall(rob["methods"][m][sweep]) if m in rob["methods"] else [None] * len(levels)
+                  for m in METHODS}
+        paths.append(plots.sweep(folder / name, x, list(levels), series))
+    bits = sorted({q["bits"] for e in rob["methods"].values() for q in e.get("quantization", [])}, reverse=True)
+    series = {}
+    for m in METHODS:
+        by_bits = {q["bits"]: (q["ap50"]["overall"] or {}).get("value")
+                   for q in rob["methods"].get(m, {}).get("quantization", [])}
+        series[m] = [by_bits.get(b) for b in bits]
+    paths.append(plots.sweep(folder / "fusion_bits.csv", "bits", bits, series))
+    return paths

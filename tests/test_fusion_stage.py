@@ -159,6 +159,27 @@ def test_report_and_metrics(stage, project):
         assert F.generated_compose(bench.roots.generated_cavs) == ["generated", "hybrid"]
     finally:
         manifest.unlink()
+    # the same curves as dvc plots data: PR on a recall grid, AP against each sweep, one column per method
+    tables = {p.name: p.read_text().splitlines() for p in R.write_plot_data(results, root / "reports" / "plots")}
+    assert sorted(tables) == sorted(["fusion_bits.csv", "fusion_delay.csv", "fusion_heading_std.csv", "fusion_pr.csv",
+                                     "fusion_position_std.csv"])
+    pr = [line.split(",") for line in tables["fusion_pr.csv"]]
+    assert pr[0] == ["recall", *(f"{m}_{d}" for m, d in R.TABLE1_COLUMNS)] and len(pr) == 102
+    for col, (m, d) in enumerate(R.TABLE1_COLUMNS, start=1):
+        curve = (results["tables"]["table1"].get(m, {}).get(d) or {}).get("pr") or {"recall": [], "precision": []}
+        values = [float(r[col]) for r in pr[1:] if r[col]]
+        assert len(values) == sum(k / 100 <= max(curve["recall"], default=-1) + 1e-12 for k in range(101)), (m, d)
+        assert values == sorted(values, reverse=True) and values[:1] == [max(curve["precision"], default=0)][:len(values)]
+    # OpenCOOD's interpolation: the best precision at a recall at least as high; none past the last
+    assert R._interpolated_precision({"recall": [0.2, 0.5, 0.8], "precision": [1.0, 0.6, 0.7]}, 0.3) == 0.7
+    assert R._interpolated_precision({"recall": [0.2, 0.5, 0.8], "precision": [1.0, 0.6, 0.7]}, 0.9) is None
+    delay = [line.split(",") for line in tables["fusion_delay.csv"]]
+    assert delay[0] == ["delay_ms", *METHODS] and [float(r[0]) for r in delay[1:]] == results["robustness"]["applied_delay_ms"]
+    late = [m["ap50"]["overall"]["value"] for m in results["robustness"]["methods"]["late"]["delay_ms"]]
+    assert [float(r[delay[0].index("late")]) for r in delay[1:]] == late
+    loss = F.write_loss_curve(bench, root / "loss.csv").read_text().splitlines()
+    assert loss[0] == "step,oracle,generated"
+    assert [int(r.split(",")[0]) for r in loss[1:]] == [row["step"] for row in bench.networks["oracle-late"][0].curve]
     metrics = json.loads(json.dumps(R.metrics_of(results)))
     assert metrics["table1"]["attfuse"]["generated"]["ap50"].keys() == set(BAND_NAMES)
     assert set(metrics["targets"]) >= {"no_fusion_ap50", "beats_no_fusion", "v2xvit_ge_late", "generated_over_oracle"}
@@ -186,7 +207,7 @@ def test_trainings_on_two_processes_give_the_bytes_of_one(project, tmp_path):
     saved = {}
     for workers in (1, 2):
         c = dataclasses.replace(cfg, processes=workers)
-        assert F.training_workers(c) == workers
+        assert F.training_processes(c) == workers
         bench = F.Benchmark(c, roots, tmp_path / f"w{workers}")
         bench.train_all()
         files = sorted((bench.out / "models").rglob("model.safetensors"))

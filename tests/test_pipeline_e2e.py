@@ -192,7 +192,10 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
     band = (proj / "reports" / "plots" / "iou_by_band.csv").read_text().splitlines()
     assert band[0].startswith("range_m,band,naive_copy") and len(band) == 4
     shown = _run([str(VENV_BIN / "dvc"), "plots", "show", "--json"], proj, project[1])
-    assert "iou_by_band" in shown.stdout
+    rendered = json.loads(shown.stdout)
+    for plot in ("iou_by_band", "fusion_loss", "fusion_pr", "fusion_position_std", "fusion_heading_std",
+                 "fusion_delay", "fusion_bits"):     # every declared plot has its data
+        assert plot in shown.stdout and not rendered.get("errors", {}).get(plot), plot
 
 
 def test_generated_dataset_is_opv2v_with_a_second_agent(project):
