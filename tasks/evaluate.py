@@ -242,7 +242,7 @@ def fusion_section(cfg, root: Path) -> tuple[dict, list[Path], list[str]]:
     lines = ["## Collaborative detection (real_cav test, AP@0.5 overall)", ""]
     for method, rows in t1.items():
         for data, cell in rows.items():
-            v = (cell or {}).get("ap50", {}).get("overall") if cell else None
+            v = (cell or {}).get("ap50", {}).get("overall")
             if v:
                 lines.append(f"- {method}, {data}: {v['value']:.2f} [{v['low']:.2f}, {v['high']:.2f}]")
     return metrics, paths, lines

@@ -203,9 +203,7 @@ class Benchmark:
     def train_all(self) -> dict[str, list[Trained]]:
         """Every run of the plan, every seed, in dependency order, on :func:`training_processes`
         processes (module doc); weights under ``<out>/models/``."""
-        jobs = [Job(run, seed, self.out, None if run.init is None else self.model_folder(run.init, seed),
-                    None if run.warm is None else self.model_folder(run.warm, seed))
-                for run in self.plan.runs.values() if run.name not in self.networks
+        jobs = [Job(run, seed, self.out) for run in self.plan.runs.values() if run.name not in self.networks
                 for seed in self.cfg.training_seeds]
         workers = training_processes(self.cfg)
         if workers == 1:
@@ -277,18 +275,24 @@ def read_inputs(cfg: FusionConfig, roots: Roots, data: str) -> Inputs:
 @dataclass(frozen=True)
 class Job:
     """One training of one run with one seed, saved under ``out/models/<run>/seed<k>``
-    (checkpoints under ``out/checkpoints/``); ``init`` / ``warm``: the folders of the networks it
-    starts from (saved before it is started)."""
+    (checkpoints under ``out/checkpoints/``); :attr:`init` / :attr:`warm`: the folders of the
+    networks it starts from (saved before it is started)."""
 
     run: Run
     seed: int
     out: Path
-    init: Path | None = None
-    warm: Path | None = None
 
     @property
     def folder(self) -> Path:
         return model_folder(self.out, self.run.name, self.seed)
+
+    @property
+    def init(self) -> Path | None:
+        return None if self.run.init is None else model_folder(self.out, self.run.init, self.seed)
+
+    @property
+    def warm(self) -> Path | None:
+        return None if self.run.warm is None else model_folder(self.out, self.run.warm, self.seed)
 
 
 def training_processes(cfg: FusionConfig) -> int:

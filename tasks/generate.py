@@ -159,6 +159,14 @@ def cav_references(scene: Scene, grid: Grid) -> list[Reference]:
     return refs
 
 
+def needs_resimulation(pipe: TYPPipeline, compose: str) -> bool:
+    """Whether :func:`generate_points` re-simulates the ego's cloud (and needs the sensor): for a
+    re-simulation-conditioned generator, or to compose hybrid views."""
+    if compose not in COMPOSE:
+        raise TypError("params.yaml", "generate.compose", f"one of {COMPOSE}", compose)
+    return pipe.conditions == 2 or compose == "hybrid"
+
+
 def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: int, *,
                     sensor=None, compose: str = "generated") -> list[np.ndarray]:
     """Batched sampling for all references of a scenario: (N, 4) float32 clouds in each
@@ -171,10 +179,8 @@ def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: 
     from tasks.stage2 import resimulated_points, threaded_map
     from typ.resim import coverage_mask, hybrid_points
 
-    if compose not in COMPOSE:
-        raise TypError("params.yaml", "generate.compose", f"one of {COMPOSE}", compose)
     resim_points = None
-    if pipe.conditions == 2 or compose == "hybrid":
+    if needs_resimulation(pipe, compose):
         if sensor is None:
             raise TypError("tasks.generate", "sensor", "the reference sensor re-simulation casts with", None)
         resim_points = list(threaded_map(lambda r: resimulated_points(r.ego_points, sensor, EGO_CAR_LWH), refs))
@@ -241,8 +247,7 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
         # an empty view is still written (every agent has a view at every timestamp); counted
         skipped["reference_view_empty"] += sum(not r.x_e.any() and not r.y_r.any() for r in refs)
     all_refs = [r for _, refs in frames for r in refs]
-    resim = generator.pipe.conditions == 2 or cfg.compose == "hybrid"
-    sensor = generator.sensor(gset.dataset) if resim and all_refs else None
+    sensor = generator.sensor(gset.dataset) if all_refs and needs_resimulation(generator.pipe, cfg.compose) else None
     clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose)
                   if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}

@@ -123,9 +123,7 @@ def occupancy_to_points(occupancy: np.ndarray, grid: Grid, stats: PointStats, rn
     k_idx, i, j = np.nonzero(occupancy)
     if len(i) == 0:
         return np.zeros((0, 4), np.float32)
-    edges = np.asarray(stats.band_edges)
-    band = np.clip(np.searchsorted(edges, np.hypot(grid.centers(0)[i], grid.centers(1)[j]), side="right") - 1,
-                   0, len(edges) - 2)
+    band = _band(grid.centers(0)[i], grid.centers(1)[j], stats)
     n = np.ones(len(i), np.int64)
     for b in np.unique(band):
         p = np.asarray(stats.points_per_voxel[b])
@@ -135,6 +133,13 @@ def occupancy_to_points(occupancy: np.ndarray, grid: Grid, stats: PointStats, rn
     lower = grid.lower + np.stack([i, j, k_idx], axis=1).astype(np.float64) * grid.voxel_size
     xyz = lower[rep] + rng.random((len(rep), 3)) * grid.voxel_size
     return np.concatenate([xyz, _intensities(band[rep], stats, rng)[:, None]], axis=1).astype(np.float32)
+
+
+def _band(x: np.ndarray, y: np.ndarray, stats: PointStats) -> np.ndarray:
+    """The range band of :class:`PointStats` that planar positions (x, y) fall in (the outer bands
+    extended to 0 and infinity)."""
+    edges = np.asarray(stats.band_edges)
+    return np.clip(np.searchsorted(edges, np.hypot(x, y), side="right") - 1, 0, len(edges) - 2)
 
 
 def _intensities(band: np.ndarray, stats: PointStats, rng: np.random.Generator) -> np.ndarray:
@@ -153,10 +158,9 @@ def draw_intensities(points: np.ndarray, grid: Grid, stats: PointStats, rng: np.
     drawn as :func:`occupancy_to_points` draws it for the band of the point's BEV range (``grid``
     is the sensor's grid, for the same banding as generated voxels: by the cell centre)."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
-    edges = np.asarray(stats.band_edges)
     cell = np.floor((pts[:, :2] - grid.lower[:2]) / grid.voxel_size[:2])
     centre = grid.lower[:2] + (cell + 0.5) * grid.voxel_size[:2]
-    band = np.clip(np.searchsorted(edges, np.hypot(centre[:, 0], centre[:, 1]), side="right") - 1, 0, len(edges) - 2)
+    band = _band(centre[:, 0], centre[:, 1], stats)
     return np.concatenate([pts, _intensities(band, stats, rng)[:, None]], axis=1).astype(np.float32)
 
 
