@@ -249,7 +249,7 @@ def _fit(trained: torch.nn.Module, predict: Callable, data: Latents, *, schedule
                                     "opt": opt.state_dict()},
                  set_state=lambda st: (trained.load_state_dict(st["model"]), ema.shadow.load_state_dict(st["ema"]),
                                        opt.load_state_dict(st["opt"])),
-                 checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
+                 checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key), curve=out / "loss" / f"{name}.csv",
                  checkpoint_every=s.checkpoint_every,
                  log_fn=lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step))
     return ema.shadow.eval()

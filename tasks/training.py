@@ -6,6 +6,10 @@
   place; the newest complete one is where a crashed run resumes. The last ``keep`` are kept.
 - A non-finite loss or gradient norm stops training with :class:`TrainingDiverged`; the last
   good checkpoint stays on disk and no broken model is written.
+- Every step's logged scalars are kept in order (:attr:`LoopResult.history`) and saved in each
+  checkpoint, so a resumed run ends with the same history as an uninterrupted one; with
+  ``curve=`` the loop writes it as the stage's loss curve (:func:`typ.plots.loss_curve`'s
+  layout: ``step`` and one column per scalar), the file ``dvc.yaml``'s ``plots:`` draws.
 - Under torchrun (:mod:`typ.distributed`) every rank starts from rank 0's state, gradients are
   averaged over ranks at each optimizer step, the logged scalars are the mean over ranks, and
   only rank 0 logs and writes checkpoints. Each step runs under the params' autocast precision.
@@ -103,20 +107,31 @@ class LoopResult:
     steps_run: int
     resumed_from: int
     last: dict[str, float]
+    history: list[dict[str, float]]  #: ``{"step": s, **scalars}`` for every step 0..total-1
+
+
+def write_curve(path: Path, history: list[dict[str, float]]) -> Path:
+    """``history`` as a loss-curve table: ``step`` then every scalar, in order of first appearance."""
+    from typ.plots import write_records
+
+    return write_records(path, history, columns=["step"])
 
 
 def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, float]],
              get_state: Callable[[], dict], set_state: Callable[[dict], None], checkpoint_dir: Path,
              checkpoint_every: int, log_fn: Callable[[dict[str, float], int], None] | None = None,
-             grad_norm_limit: float = 1e6) -> LoopResult:
+             grad_norm_limit: float = 1e6, curve: Path | None = None) -> LoopResult:
     """Run ``step_fn(step)`` for steps ``[start, total_steps)``, resuming from the newest checkpoint.
 
     step_fn returns scalars to log (must include ``loss``; may include ``grad_norm``).
     get_state/set_state give and restore everything a resume needs (models, optimizers).
+    ``curve``: where to write every step's scalars at the end (:func:`write_curve`), rank 0 only.
     """
     start = 0
+    history: list[dict[str, float]] = []
     saved = load_latest(checkpoint_dir)
     if saved is not None:
+        history = list(saved.pop("history", []))
         set_state(saved)
         start = int(saved["step"])
     if distributed.world_size() > 1:
@@ -141,13 +156,16 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
                                        f"{[values[k] for k in bad] or values.get('grad_norm')}; "
                                        f"stopped, last good checkpoint: {where}")
             last = values
+            history.append({"step": step, **values})
             if log_fn is not None and main:
                 log_fn(values, step)
             done = step + 1
             if main and (done % checkpoint_every == 0 or done == total_steps):
-                save_checkpoint(checkpoint_dir, done, get_state())
+                save_checkpoint(checkpoint_dir, done, {**get_state(), "history": history})
             bar.update(task, advance=1, description=f"loss {values['loss']:.4f}")
-    return LoopResult(total_steps - start, start, last)
+    if curve is not None and main:
+        write_curve(Path(curve), history)
+    return LoopResult(total_steps - start, start, last, history)
 
 
 def grad_norm(parameters) -> float:

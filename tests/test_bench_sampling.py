@@ -88,3 +88,16 @@ def test_schedules_table_marks_missing_steps():
 def test_parse_list():
     assert bench.parse_list("5, 10,20,", int) == [5, 10, 20]
     assert bench.parse_list("ddim,unipc") == ["ddim", "unipc"]
+
+
+def test_plot_data_has_one_row_per_measured_setting_with_error_one_minus_iou(tmp_path):
+    import csv
+
+    results = {"linear": {"rows": [REF, row("unipc", 10, 0.25, 0.21, 0.40)]},
+               "cosine": {"rows": [row("ddim", 5, 0.125, 0.3, 0.25)]}}
+    path = bench.plot_data(results, tmp_path / "bench_sampling.csv")
+    got = list(csv.DictReader(path.open()))
+    assert [r["setting"] for r in got] == ["linear ddim-200", "linear unipc-10", "cosine ddim-5"]
+    assert [float(r["seconds"]) for r in got] == [2.0, 0.25, 0.125]
+    assert [float(r["error"]) for r in got] == [0.5, 0.6, 0.75]  # 1 - IoU
+    assert [r["schedule"] for r in got] == ["linear", "linear", "cosine"]

@@ -196,6 +196,16 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
     for plot in ("iou_by_band", "fusion_loss", "fusion_pr", "fusion_position_std", "fusion_heading_std",
                  "fusion_delay", "fusion_bits"):     # every declared plot has its data
         assert plot in shown.stdout and not rendered.get("errors", {}).get(plot), plot
+    # every trained network's loss curve (a folder per stage in dvc.yaml: one plot per file)
+    for stage in ("vqvae", "stage1", "adapt", "stage2", "selftrain", "ddpm"):
+        curves = sorted((proj / "artifacts" / stage / "loss").glob("*.csv"))
+        assert curves, stage
+        for curve in curves:
+            key = str(curve.relative_to(proj))
+            assert key in rendered["data"] and not rendered.get("errors", {}).get(key), key
+            head, *rows = curve.read_text().splitlines()
+            assert head.startswith("step,loss") and [int(r.split(",")[0]) for r in rows] == list(range(len(rows)))
+    assert "reports/bench_sampling.csv" in rendered["data"]
 
 
 def test_generated_dataset_is_opv2v_with_a_second_agent(project):

@@ -29,8 +29,8 @@ def _setup():
 
 def test_resume_matches_uninterrupted(tmp_path):
     model_a, step_a, (get_a, set_a) = _setup()
-    run_loop(name="a", total_steps=10, step_fn=step_a, get_state=get_a, set_state=set_a,
-             checkpoint_dir=tmp_path / "a", checkpoint_every=3)
+    full = run_loop(name="a", total_steps=10, step_fn=step_a, get_state=get_a, set_state=set_a,
+                    checkpoint_dir=tmp_path / "a", checkpoint_every=3, curve=tmp_path / "a.csv")
 
     model_b, step_b, (get_b, set_b) = _setup()
     with pytest.raises(KeyboardInterrupt):
@@ -40,10 +40,16 @@ def test_resume_matches_uninterrupted(tmp_path):
     # a fresh process: new objects, state only from disk
     model_c, step_c, (get_c, set_c) = _setup()
     result = run_loop(name="c", total_steps=10, step_fn=step_c, get_state=get_c, set_state=set_c,
-                      checkpoint_dir=tmp_path / "b", checkpoint_every=3)
+                      checkpoint_dir=tmp_path / "b", checkpoint_every=3, curve=tmp_path / "c.csv")
     assert result.resumed_from == 6 and result.steps_run == 4
     for pa, pc in zip(model_a.parameters(), model_c.parameters()):
         assert torch.equal(pa, pc)
+    # the loss curve survives the crash: steps 0-5 come back from the checkpoint, 6-9 are new
+    assert [h["step"] for h in result.history] == list(range(10)) and result.history == full.history
+    assert (tmp_path / "c.csv").read_bytes() == (tmp_path / "a.csv").read_bytes()
+    lines = (tmp_path / "a.csv").read_text().splitlines()
+    assert lines[0] == "step,loss" and len(lines) == 11
+    assert [float(line.split(",")[1]) for line in lines[1:]] == [h["loss"] for h in full.history]
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
