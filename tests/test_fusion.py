@@ -334,3 +334,9 @@ def test_quantization_is_exact_at_high_bit_widths_and_coarse_at_low():
     coarse = quantize(x, 2, (2, 3))
     assert all(len(torch.unique(coarse[b, c])) <= 4 for b in range(2) for c in range(3))
     assert torch.allclose(coarse.amin((2, 3)), x.amin((2, 3))) and torch.allclose(coarse.amax((2, 3)), x.amax((2, 3)))
+
+
+def test_params_checking_knows_every_fusion_method_in_registry_order():
+    from typ.config import FUSION_METHODS
+
+    assert tuple(METHODS) == FUSION_METHODS

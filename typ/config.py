@@ -586,6 +586,11 @@ class AugmentConfig:
             raise TypError(where, f"{name}.scale", "[low, high] with 0 < low <= high", list(self.scale))
 
 
+#: the names of ``models.fusion.METHODS`` in its order, here so that checking params needs no torch
+#: (tests/test_fusion.py holds the two equal)
+FUSION_METHODS = ("none", "early", "late", "attfuse", "v2xvit")
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Stage ``fusion`` (TYP §4.2–4.5, Tables 1–3; V2VSSC §IV): collaborative detection benchmark.
@@ -648,17 +653,15 @@ class FusionConfig:
     out: str
 
     def check(self, where: str, name: str) -> None:
-        from models.fusion import METHODS  # the registry of fusion methods is the list of names
-
         self.detector.check(where, f"{name}.detector")
         self.v2xvit.check(where, f"{name}.v2xvit")
         self.robustness.check(where, f"{name}.robustness")
         self.augment.check(where, f"{name}.augment")
         for i, method in enumerate(self.methods):
-            if method not in METHODS:
-                raise TypError(where, f"{name}.methods[{i}]", f"one of {list(METHODS)}", method)
+            if method not in FUSION_METHODS:
+                raise TypError(where, f"{name}.methods[{i}]", f"one of {list(FUSION_METHODS)}", method)
         if not self.methods or len(set(self.methods)) != len(self.methods):
-            raise TypError(where, f"{name}.methods", f"each of {'/'.join(METHODS)} at most once",
+            raise TypError(where, f"{name}.methods", f"each of {'/'.join(FUSION_METHODS)} at most once",
                            list(self.methods))
         _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
                          "pretrain_steps", "finetune_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
