@@ -84,3 +84,21 @@ def test_pairwise_iou_of_samples():
     assert genscore.pairwise_iou(a, b) == 1.0
     b[0, 0, 1] = False
     assert genscore.pairwise_iou(a, b) == pytest.approx(0.5)
+
+
+def test_jsd_interval_holds_its_figure_when_resampling_biases_it():
+    """Eight scenes of random ground: a resample with repeated scenes pools fewer distinct views,
+    so its JSD lies above the figure; the interval must still contain the figure."""
+    rng = np.random.default_rng(0)
+    scores, scenes, hists, centres = [], [], [], []
+    for k in range(8):
+        truth, gen = np.zeros((2, 8, 64, 64), bool)
+        truth[1], gen[1] = rng.random((2, 64, 64)) < 0.5
+        stats = genscore.true_view_stats(truth, GRID)
+        scores.append(genscore.score_pair(gen, np.zeros((0, 3)), truth, np.ones((64, 64), bool), np.zeros((0, 7)),
+                                          GRID, stats))
+        scenes.append(f"s{k}")
+        hists.append(stats["histogram"])
+        centres.append(stats["centres"])
+    jsd = genscore.summarize([scores], scenes, hists, centres, n_boot=200)["jsd_r2dm"]
+    assert 0 < jsd.low <= jsd.value <= jsd.high
