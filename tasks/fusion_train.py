@@ -163,7 +163,6 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
                     "data": data_key(inputs), "init": None if init is None else init.key,
                     "warm": None if warm is None else warm.key})[:16]
     batch_size = min(cfg.batch_size, len(inputs))
-    curve: list[dict] = []
 
     def step_fn(step: int) -> dict[str, float]:
         lr = learning_rate(peak, step, steps, cfg.lr_schedule, cfg.warmup)
@@ -186,23 +185,23 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
                   "grad_norm": grad_norm(model.parameters()), "lr": lr}
         return values
 
-    def log(values: dict, step: int) -> None:
-        if step % LOG_EVERY == 0 or step == steps - 1:
-            curve.append({"step": step, **{k: round(v, 6) for k, v in values.items()}})
-            if log_fn is not None:
-                log_fn({f"{name}.{k}": v for k, v in values.items()}, step)
+    def logged(step: int) -> bool:
+        return step % LOG_EVERY == 0 or step == steps - 1
 
-    def set_state(s: dict) -> None:
-        model.load_state_dict(s["model"])
-        opt.load_state_dict(s["opt"])
-        curve[:] = s.get("curve", [])
+    def log(values: dict, step: int) -> None:
+        if log_fn is not None and logged(step):
+            log_fn({f"{name}.{k}": v for k, v in values.items()}, step)
 
     with distributed.on_device(model):
-        run_loop(name=f"fusion {name}", total_steps=steps, step_fn=step_fn,
-                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict(), "curve": list(curve)},
-                 set_state=set_state, checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
-                 checkpoint_every=cfg.checkpoint_every, log_fn=log)
+        result = run_loop(name=f"fusion {name}", total_steps=steps, step_fn=step_fn,
+                          get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
+                          set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                          checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
+                          checkpoint_every=cfg.checkpoint_every, log_fn=log)
     model.eval()
+    # the loop's history (kept across a resume by its checkpoints), every LOG_EVERY steps and the last
+    curve = [{"step": h["step"], **{k: round(v, 6) for k, v in h.items() if k != "step"}}
+             for h in result.history if logged(h["step"])]
     return Trained(method, model, coder, key, steps, seed, curve)
 
 
