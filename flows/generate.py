@@ -57,7 +57,8 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
 
     return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_scenario,
                            work_kwargs={"cfg": block, "generator": generator, "out": out},
-                           label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize)
+                           label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize,
+                           unchanged=stage.unchanged)
 
 
 def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, params: str,

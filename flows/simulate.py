@@ -25,4 +25,5 @@ def simulate_flow(params: str = "params.yaml", root: str = ".") -> dict:
         return jobs, stage.stale_scenarios(jobs, out)
 
     return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_job,
-                           work_kwargs={"out": out}, label=lambda job: job.name, summarize=stage.summarize)
+                           work_kwargs={"out": out}, label=lambda job: job.name, summarize=stage.summarize,
+                           unchanged=stage.unchanged)

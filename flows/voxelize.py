@@ -28,4 +28,5 @@ def voxelize_flow(params: str = "params.yaml", root: str = ".") -> dict:
 
     return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_scene,
                            work_kwargs={"cfg": cfg.voxelize, "out": out}, label=lambda item: item.name,
-                           summarize=lambda results: stage.summarize(results, grid))
+                           summarize=lambda results: stage.summarize(results, grid),
+                           unchanged=stage.unchanged)

@@ -212,17 +212,30 @@ def new_skip_counts() -> dict[str, int]:
     return {k: 0 for k in SKIP_REASONS}
 
 
-def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generator: "Generator",
-                 out: Path) -> dict:
-    """Generate and write every reference of one scenario; skip it when its key is unchanged."""
+def _scenario_state(item: tuple[GenerateSet, Path], cfg: GenerateConfig, generator: "Generator", out: Path):
+    """(output folder, grid, key, result fields, the skipped result when the stored output has the key)."""
     gset, folder = item
     target = out / gset.dataset / gset.split / folder.name
     grid = generator.grid(gset.dataset)
     key = scenario_key(folder, gset, cfg, generator.digest, grid)
     base = {"scenario": f"{gset.dataset}/{gset.split}/{folder.name}", "set": f"{gset.dataset}/{gset.split}"}
     manifest = read_json_or_none(target / MANIFEST)
-    if manifest is not None and manifest.get("key") == key:
-        return {**base, "skipped": "unchanged", **manifest["counts"]}
+    done = {**base, "skipped": "unchanged", **manifest["counts"]} if manifest and manifest.get("key") == key else None
+    return target, grid, key, base, done
+
+
+def unchanged(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generator: "Generator", out: Path) -> dict | None:
+    """The skipped result of a scenario whose generated output has its key, else None."""
+    return _scenario_state(item, cfg, generator, out)[4]
+
+
+def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generator: "Generator",
+                 out: Path) -> dict:
+    """Generate and write every reference of one scenario; skip it when its key is unchanged."""
+    gset, folder = item
+    target, grid, key, base, done = _scenario_state(item, cfg, generator, out)
+    if done is not None:
+        return done
     t0 = time.perf_counter()
     skipped = new_skip_counts()
     agents = list_agents(folder)

@@ -191,15 +191,26 @@ def stale_scenarios(jobs: list, out: Path) -> list[Path]:
     return sorted(p for p in out.glob("*/*/*") if p.is_dir() and p not in wanted and not p.name.startswith("."))
 
 
-def run_job(job: ScenarioJob | ImportJob, out: Path) -> dict:
-    """Simulate or take one scenario and write it; returns counts, or ``skipped`` with the reason."""
-    folder = job.folder(out)
-    key = job.key()
+def _job_state(job: ScenarioJob | ImportJob, out: Path) -> tuple[Path, str, dict, dict | None]:
+    """(output folder, key, result fields, the skipped result when the stored scenario has the key)."""
+    folder, key = job.folder(out), job.key()
     base = {"scenario": job.name, "domain": job.domain, "split": job.split,
             "imported": isinstance(job, ImportJob)}
     manifest = read_json_or_none(folder / MANIFEST)
-    if manifest is not None and manifest.get("key") == key:
-        return {**base, "skipped": "unchanged", **manifest["counts"]}
+    done = {**base, "skipped": "unchanged", **manifest["counts"]} if manifest and manifest.get("key") == key else None
+    return folder, key, base, done
+
+
+def unchanged(job: ScenarioJob | ImportJob, *, out: Path) -> dict | None:
+    """The skipped result of a scenario already written with this job's key, else None."""
+    return _job_state(job, out)[3]
+
+
+def run_job(job: ScenarioJob | ImportJob, out: Path) -> dict:
+    """Simulate or take one scenario and write it; returns counts, or ``skipped`` with the reason."""
+    folder, key, base, done = _job_state(job, out)
+    if done is not None:
+        return done
     t0 = time.perf_counter()
     with atomic_path(folder) as tmp:
         tmp.mkdir(parents=True)

@@ -62,14 +62,24 @@ def stale_outputs(items: list[ScenarioInput], out: Path) -> list[Path]:
     return [s.path for s in list_scenes(out) if s.path not in wanted]
 
 
+def _scene_state(item: ScenarioInput, cfg: VoxelizeConfig, out: Path) -> tuple[Path, Grid, str, dict]:
+    """(output path, grid, input hash, result fields) of one scenario."""
+    grid = cfg.sensor_grid(item.dataset, where=str(item.folder))
+    base = {"scenario": item.name, "dataset": item.dataset, "split": item.split}
+    return scene_path(out, item.dataset, item.split, item.name), grid, input_hash(item, grid), base
+
+
+def unchanged(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict | None:
+    """The skipped result of a scenario whose stored voxels have its input hash, else None."""
+    path, _, digest, base = _scene_state(item, cfg, out)
+    return {**base, "skipped": "unchanged"} if stored_input_hash(path) == digest else None
+
+
 def run_scene(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict:
     """Voxelize every (agent, timestamp) of one scenario on its dataset's sensor grid
     (:meth:`VoxelizeConfig.sensor_grid`); skip it when its inputs are unchanged."""
-    path = scene_path(out, item.dataset, item.split, item.name)
-    grid = cfg.sensor_grid(item.dataset, where=str(item.folder))
-    digest = input_hash(item, grid)
-    base = {"scenario": item.name, "dataset": item.dataset, "split": item.split}
-    if stored_input_hash(path) == digest:
+    path, grid, digest, base = _scene_state(item, cfg, out)
+    if stored_input_hash(path) == digest:  # as unchanged(): the flow settles most such scenes itself
         return {**base, "skipped": "unchanged"}
     t0 = time.perf_counter()
     stats = {"views": 0, "empty_views": 0, "points": 0, "points_in_grid": 0, "occupied": 0, "box_cells": 0}

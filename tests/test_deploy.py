@@ -160,6 +160,47 @@ def test_retries_only_transient_io_errors_and_failures_name_the_scene(api):
             assert "data/sim/bad" in str(info.value)
 
 
+def _scene_work(scene: str, *, out) -> dict:
+    CALLS[scene] = CALLS.get(scene, 0) + 1
+    return {"scenario": scene, "skipped": None}
+
+
+def _scene_unchanged(scene: str, *, out) -> dict | None:
+    return {"scenario": scene, "skipped": "unchanged"} if scene.startswith("old") else None
+
+
+def test_per_scene_stage_settles_unchanged_scenes_without_a_prefect_task(api, tmp_path, monkeypatch):
+    """A no-op stage must not pay a Prefect task per unchanged scene; results keep the plan's order."""
+    import contextlib
+
+    from prefect import flow
+
+    from flows import common
+
+    finished = {}
+    monkeypatch.setattr(common, "stage_run", lambda stage, cfg, root: contextlib.nullcontext(None))
+    monkeypatch.setattr(common, "finish_stage", lambda stage, run, metrics, root: finished.update(metrics))
+    submitted = []
+    real = common.per_scene
+    monkeypatch.setattr(common, "per_scene", lambda fn, items, **kw: submitted.extend(items) or real(fn, items, **kw))
+
+    @flow(name="settle")
+    def run(items):
+        return common.per_scene_stage("probe", None, tmp_path, out=tmp_path / "out", plan=lambda: (items, []),
+                                      work=_scene_work, work_kwargs={"out": tmp_path}, label=str,
+                                      summarize=lambda rs: {"order": [r["scenario"] for r in rs],
+                                                            "ran": sum(r["skipped"] is None for r in rs)},
+                                      unchanged=_scene_unchanged)
+
+    CALLS.clear()
+    run(["old_a", "new_b", "old_c", "new_d"])
+    assert submitted == ["new_b", "new_d"] and CALLS == {"new_b": 1, "new_d": 1}
+    assert finished["order"] == ["old_a", "new_b", "old_c", "new_d"] and finished["ran"] == 2
+    submitted.clear()
+    run(["old_a", "old_c"])  # all unchanged: no task at all
+    assert submitted == [] and finished["order"] == ["old_a", "old_c"] and finished["ran"] == 0
+
+
 def test_watched_folder_finds_new_scenarios_and_points_generate_at_them(tmp_path):
     from flows.deploy import DERIVED_PARAMS, new_scenarios, watch_params
     from typ.config import load_config
