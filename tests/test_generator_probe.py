@@ -1,0 +1,42 @@
+"""bench/generator_probe.py: the z_0 estimate it scores every kind of network by."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def probe():
+    spec = importlib.util.spec_from_file_location("generator_probe", ROOT / "bench" / "generator_probe.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("a", [0.9, 0.3, 0.02])
+def test_z0_estimate_inverts_each_prediction_kind(probe, a):
+    g = torch.Generator().manual_seed(0)
+    z0, eps = torch.randn(2, 8, 4, 4, generator=g), torch.randn(2, 8, 4, 4, generator=g)
+    a = torch.tensor(a)
+    z_t = a.sqrt() * z0 + (1 - a).sqrt() * eps
+    exact = {"sample": z0, "epsilon": eps, "v_prediction": a.sqrt() * eps - (1 - a).sqrt() * z0}
+    for kind, output in exact.items():
+        torch.testing.assert_close(probe.z0_of(None, kind, z_t, output, a), z0, atol=1e-4, rtol=1e-4)
+    # a wrong output is scored as wrong: ε mistaken for z_0 is off by the noise
+    assert float(((probe.z0_of(None, "sample", z_t, eps, a) - z0) ** 2).mean()) > 0.5
+
+
+def test_adapter_input_standardises_each_stacked_latent_as_x(probe):
+    class Stub:
+        config = {"latent_channels": 2}
+
+        def normalize(self, z):
+            return (z - 1.0) / 2.0
+
+    latents = torch.arange(2 * 4 * 3 * 3, dtype=torch.float32).reshape(2, 4, 3, 3)
+    torch.testing.assert_close(probe.adapter_input(Stub(), latents), (latents - 1.0) / 2.0)
