@@ -114,7 +114,9 @@ def test_overfits_one_batch_to_reconstruction_iou_above_0_9():
     torch.manual_seed(0)
     m = BEVVQVAE(in_channels=4, latent_channels=8, block_out_channels=(16, 32), num_codes=64, norm_num_groups=8)
     x = _occupancy_batch()
-    _fit(m, x, 150)
+    # 400 steps: at 150 this seed sat at IoU 0.35 on an AMD EPYC (the floats differ by CPU) and
+    # above 0.9 on the machine the test was written on; there it reaches 0.97 at 300, 0.998 at 400
+    _fit(m, x, 400)
     with torch.no_grad():
         pred = torch.sigmoid(m(x).logits) > 0.5
     truth = x > 0.5
