@@ -48,7 +48,7 @@ def encode(encoder, grids: np.ndarray) -> torch.Tensor:
                           for i in range(0, len(grids), 16)])
 
 
-def z0_of(ldm, prediction: str, z_t: torch.Tensor, output: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+def z0_of(prediction: str, z_t: torch.Tensor, output: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     """The network's z_0 estimate from its output of kind ``prediction``."""
     if prediction == "sample":
         return output
@@ -60,15 +60,16 @@ def z0_of(ldm, prediction: str, z_t: torch.Tensor, output: torch.Tensor, a: torc
 @torch.no_grad()
 def z0_errors(ldm, schedule: str, steps: int, z0: torch.Tensor, cond: torch.Tensor, eps: torch.Tensor,
               ego: torch.Tensor | None = None, adapter=None) -> list[float]:
+    """ego: the adapter's pre-quantization input latents (x_e' [, re-simulated]), unstandardised."""
     abar = torch.from_numpy(alphas_cumprod(betas(schedule, steps))).float()
     z0, c = ldm.normalize(z0), ldm.normalize_cond(cond)
+    feats = stage2.adapter_features(adapter, ldm, ego) if adapter is not None else None
     out = []
     for level in LEVELS:
         t = int(level * steps)
         a = abar[t]
         z_t = a.sqrt() * z0 + (1 - a).sqrt() * eps
-        feats = adapter(ego) if adapter is not None else None
-        pred = z0_of(ldm, ldm.config["prediction"], z_t, ldm(z_t, torch.full((len(z0),), t), c, feats), a)
+        pred = z0_of(ldm.config["prediction"], z_t, ldm(z_t, torch.full((len(z0),), t), c, feats), a)
         out.append(float(((pred - z0) ** 2).mean()))
     return out
 
@@ -103,7 +104,7 @@ def main() -> None:
     ego[2] = torch.cat([ego[1], encode(x_vq, data.resim)], 1)
     eps = torch.randn(z0.shape, generator=torch.Generator().manual_seed(0))
     base = base_pipeline(cfg, root, cfg.stage1.seed, x_vq, y_vq, stats)
-    ldm, saved = base.unet, {"schedule": base.schedule, "train_timesteps": base.train_timesteps}
+    ldm = base.unet
     train = load_views(root / cfg.stage1.input, dataset=cfg.stage1.dataset, split=cfg.stage1.train_split)
     latents, train_cond = stage1.encode_views(x_vq, y_vq, train, dihedral=True)
     mean = float(((ldm.normalize(z0) - ldm.normalize(latents).mean(0, keepdim=True)) ** 2).mean())
@@ -115,8 +116,7 @@ def main() -> None:
     for name, conditions in (("disc_st_dummy", 1), ("typ_resim", 2)):
         if (folder / name / "config.json").is_file():
             adapter = stage2.load_adapter(folder / name, "selftrain")
-            errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps,
-                             adapter_input(ldm, ego[conditions]), adapter)
+            errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, ego[conditions], adapter)
             print(f"selftrain {name}: z_0 error {fmt(errs)}")
             print(f"  samples: {scores(base.with_adapter(adapter), data, spread=False)}", flush=True)
     for text in args.stage1:
@@ -150,19 +150,12 @@ def main() -> None:
         settings = dataclasses.replace(stage2.settings_of(block, cfg.stage1.seed, cfg.stage1.min_snr),
                                        checkpoint_every=10 ** 9)
         t0 = time.perf_counter()
-        fitted = stage2.fit_adapter(adapter, ldm, saved["schedule"], saved["train_timesteps"], latents2, name="probe",
+        fitted = stage2.fit_adapter(adapter, ldm, base.schedule, base.train_timesteps, latents2, name="probe",
                                     settings=settings, views=len(tuples), key_extra={}, out=OUT / "adapter" / text.replace(" ", ""),
                                     log_fn=lambda values, step: None)
-        errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, adapter_input(ldm, ego[conditions]),
-                         fitted)
+        errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, ego[conditions], fitted)
         print(f"adapter {text} ({time.perf_counter() - t0:.0f} s): z_0 error {fmt(errs)}")
         print(f"  samples: {scores(base.with_adapter(fitted), data, spread=False)}", flush=True)
-
-
-def adapter_input(ldm, latents: torch.Tensor) -> torch.Tensor:
-    """The adapter's input: each stacked latent standardised as x (as :func:`tasks.stage2.adapter_features`)."""
-    c = ldm.config["latent_channels"]
-    return torch.cat([ldm.normalize(latents[:, i:i + c]) for i in range(0, latents.shape[1], c)], 1)
 
 
 if __name__ == "__main__":
