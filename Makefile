@@ -6,6 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH := torch==2.13.0
+UV := uv==0.13.8
 WAYMO := waymo-open-dataset-tf-2-12-0==1.6.7
 
 export PREFECT_HOME := $(CURDIR)/.prefect
@@ -37,11 +38,14 @@ $(STAMP): requirements.txt requirements.lock pyproject.toml
 	  else echo "note: chromium is missing and we are not root; tests/test_mlflow_ui.py will be skipped"; fi; \
 	fi
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	# torch first, alone, so that nothing later can pull a CUDA build. pip byte-compiles what it
-	# installs: with PYTHONDONTWRITEBYTECODE set (as on CI images), --no-compile made every stage
-	# compile its imports again from source (the gap between stages went from 16 to 30 s)
-	$(BIN)/python -m pip install -q $(TORCH)
-	$(BIN)/python -m pip install -q -r requirements.txt -c requirements.lock
+	# torch first, alone, with pip (which takes the CPU wheel on this machine's disk; uv does not
+	# look there), so that nothing later can pull a CUDA build: the rest names the same torch,
+	# which the installed one satisfies. uv installs the pinned set in 64 s where pip took 248 s
+	# (same 258 packages, same versions). Both byte-compile what they install: with
+	# PYTHONDONTWRITEBYTECODE set (as on CI images), skipping it made every stage compile its
+	# imports again from source (the gap between stages went from 16 to 30 s)
+	$(BIN)/python -m pip install -q $(TORCH) $(UV)
+	$(BIN)/uv pip install --python $(BIN)/python --compile-bytecode -q $(TORCH) -r requirements.txt -c requirements.lock
 	$(BIN)/python -m pip install -q --no-deps $(WAYMO)
 	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
 	$(BIN)/python -c "import torch, open3d, prefect, mlflow, dvc; assert torch.__version__.startswith('2.13.0'), torch.__version__"
