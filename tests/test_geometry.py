@@ -157,3 +157,31 @@ def test_points_in_boxes():
     assert inside[:, 0].tolist() == [True, False, True, False, True]
     two = g.points_in_boxes(pts, [box, [10, 10, 10, 1, 1, 1, 0]])
     assert two.shape == (5, 2) and not two[:, 1].any()
+
+
+def _points_in_boxes_every_pair(points, boxes) -> np.ndarray:
+    """The exact test on every (point, box) pair: the reference the pruned search must equal."""
+    pts, b = np.asarray(points, float)[:, :3], np.asarray(boxes, float).reshape(-1, 7)
+    d = pts[:, None, :] - b[None, :, :3]
+    c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
+    lx, ly = d[..., 0] * c + d[..., 1] * s, -d[..., 0] * s + d[..., 1] * c
+    half = b[:, 3:6] / 2.0
+    return (np.abs(lx) <= half[:, 0]) & (np.abs(ly) <= half[:, 1]) & (np.abs(d[..., 2]) <= half[:, 2])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_points_in_boxes_equals_the_test_of_every_pair_corners_and_faces_included(seed):
+    from typ.geometry import box_corners, points_in_boxes
+
+    rng = np.random.default_rng(seed)
+    boxes = np.column_stack([rng.uniform(-30, 30, (40, 2)), rng.uniform(-1, 1, 40), rng.uniform(0.5, 8, 40),
+                             rng.uniform(0.5, 3, 40), rng.uniform(1, 3, 40), rng.uniform(-np.pi, np.pi, 40)])
+    boxes[:5, 6] = [0.0, np.pi / 2, -np.pi, np.pi / 4, 1e-12]  # axis-aligned and diagonal boxes
+    corners = box_corners(boxes).reshape(-1, 3)  # on the boundary: inside or not by round-off alone
+    faces = (box_corners(boxes)[:, :4] + box_corners(boxes)[:, 4:]).reshape(-1, 3) / 2
+    points = np.concatenate([rng.uniform([-35, -35, -2], [35, 35, 2], (20_000, 3)), corners, faces,
+                             corners + rng.normal(0, 1e-9, corners.shape)])
+    inside = points_in_boxes(points, boxes)
+    np.testing.assert_array_equal(inside, _points_in_boxes_every_pair(points, boxes))
+    assert inside.any(axis=0).all()  # every box holds points (a search that missed them would pass the rest)
+    assert points_in_boxes(points[:0], boxes).shape == (0, 40) and points_in_boxes(points, boxes[:0]).shape == (len(points), 0)
