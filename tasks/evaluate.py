@@ -212,10 +212,10 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
         rows = [{"method": gen.label(k), **{f: round(iv.value, 5) for f, iv in v.items()}}
                 for k, v in result["table"].items()]
         run.log_table(rows, "generation_accuracy.json")
-        for s in samples[:4]:
-            from typ.viz import sample_figure
+        from typ.viz import safe_name
 
-            run.log_figure(sample_figure(s, grid), f"gallery/{s['name']}.png")
+        for s in samples[:4]:  # the gallery's own PNGs (drawing them again cost 2 s each)
+            run.artifact(root / GALLERY / f"{safe_name(s['name'])}.png", "gallery")
     fusion_metrics, fusion_paths, fusion_lines = fusion_section(cfg, root)
     metrics["fusion"] = fusion_metrics
     summary = "\n".join(["# typ evaluate", "", *comparisons(result["table"], [
