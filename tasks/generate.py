@@ -225,7 +225,11 @@ def _scenario_state(item: tuple[GenerateSet, Path], cfg: GenerateConfig, generat
 
 
 def unchanged(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generator: "Generator", out: Path) -> dict | None:
-    """The skipped result of a scenario whose generated output has its key, else None."""
+    """The skipped result of a scenario whose generated output has its key, else None (without
+    computing the key, which hashes the scenario's inputs, when nothing was generated for it)."""
+    gset, folder = item
+    if not (out / gset.dataset / gset.split / folder.name / MANIFEST).is_file():
+        return None
     return _scenario_state(item, cfg, generator, out)[4]
 
 

@@ -70,9 +70,14 @@ def _scene_state(item: ScenarioInput, cfg: VoxelizeConfig, out: Path) -> tuple[P
 
 
 def unchanged(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict | None:
-    """The skipped result of a scenario whose stored voxels have its input hash, else None."""
-    path, _, digest, base = _scene_state(item, cfg, out)
-    return {**base, "skipped": "unchanged"} if stored_input_hash(path) == digest else None
+    """The skipped result of a scenario whose stored voxels have its input hash, else None. A
+    scenario with no stored voxels is not hashed here (a fresh run would read every input twice,
+    the first time serially in the flow's process)."""
+    stored = stored_input_hash(scene_path(out, item.dataset, item.split, item.name))
+    if stored is None:
+        return None
+    _, _, digest, base = _scene_state(item, cfg, out)
+    return {**base, "skipped": "unchanged"} if stored == digest else None
 
 
 def run_scene(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict:
