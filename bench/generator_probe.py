@@ -105,7 +105,8 @@ def main() -> None:
     eps = torch.randn(z0.shape, generator=torch.Generator().manual_seed(0))
     base = base_pipeline(cfg, root, cfg.stage1.seed, x_vq, y_vq, stats)
     ldm = base.unet
-    train = load_views(root / cfg.stage1.input, dataset=cfg.stage1.dataset, split=cfg.stage1.train_split)
+    train = load_views(root / cfg.stage1.input, dataset=cfg.stage1.dataset, split=cfg.stage1.train_split,
+                       ego_only=cfg.stage1.ego_only)
     latents, train_cond = stage1.encode_views(x_vq, y_vq, train, dihedral=True)
     mean = float(((ldm.normalize(z0) - ldm.normalize(latents).mean(0, keepdim=True)) ** 2).mean())
     fmt = lambda errs: " ".join(f"{e:.3f}" for e in errs)  # noqa: E731
@@ -124,8 +125,12 @@ def main() -> None:
         block = dataclasses.replace(cfg.stage1, **{k: v for k, v in over.items() if k != "unet"}, checkpoint_every=10 ** 9)
         if "unet" in over:
             block = dataclasses.replace(block, unet=dataclasses.replace(block.unet, **over["unet"]))
+        views, z, c = train, latents, train_cond
+        if block.ego_only != cfg.stage1.ego_only:
+            views = load_views(root / block.input, dataset=block.dataset, split=block.train_split, ego_only=block.ego_only)
+            z, c = stage1.encode_views(x_vq, y_vq, views, dihedral=True)
         t0 = time.perf_counter()
-        model = stage1.train(block, latents, train_cond, seed=cfg.stage1.seed, views=len(train),
+        model = stage1.train(block, z, c, seed=cfg.stage1.seed, views=len(views),
                              out=OUT / "stage1" / text.replace(" ", ""), log_fn=lambda values, step: None)
         val = load_views(root / cfg.stage1.input, dataset=cfg.stage1.dataset, split=cfg.stage1.val_split)
         val = val.head(cfg.stage1.eval_views)

@@ -290,6 +290,9 @@ class Stage1Config:
     prediction: Literal["epsilon", "sample", "v_prediction"] = "epsilon"
     #: Min-SNR-γ loss weighting (0: the plain mean squared error of Eq. 4)
     min_snr: float = 0.0
+    #: train on the ego views of the training split only (True), or on every agent's view, each
+    #: taken alone as one more single-agent scan of the target domain (no pairing is used)
+    ego_only: bool = True
 
     def check(self, where: str, name: str) -> None:
         self.unet.check(where, f"{name}.unet")
