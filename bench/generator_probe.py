@@ -105,8 +105,7 @@ def main() -> None:
     eps = torch.randn(z0.shape, generator=torch.Generator().manual_seed(0))
     base = base_pipeline(cfg, root, cfg.stage1.seed, x_vq, y_vq, stats)
     ldm = base.unet
-    train = load_views(root / cfg.stage1.input, dataset=cfg.stage1.dataset, split=cfg.stage1.train_split,
-                       ego_only=cfg.stage1.ego_only)
+    train = stage1.train_views(cfg.stage1, root)
     latents, train_cond = stage1.encode_views(x_vq, y_vq, train, dihedral=True)
     mean = float(((ldm.normalize(z0) - ldm.normalize(latents).mean(0, keepdim=True)) ** 2).mean())
     fmt = lambda errs: " ".join(f"{e:.3f}" for e in errs)  # noqa: E731
@@ -127,7 +126,7 @@ def main() -> None:
             block = dataclasses.replace(block, unet=dataclasses.replace(block.unet, **over["unet"]))
         views, z, c = train, latents, train_cond
         if block.ego_only != cfg.stage1.ego_only:
-            views = load_views(root / block.input, dataset=block.dataset, split=block.train_split, ego_only=block.ego_only)
+            views = stage1.train_views(block, root)
             z, c = stage1.encode_views(x_vq, y_vq, views, dihedral=True)
         t0 = time.perf_counter()
         model = stage1.train(block, z, c, seed=cfg.stage1.seed, views=len(views),

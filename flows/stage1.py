@@ -24,7 +24,7 @@ def stage1_flow(params: str = "params.yaml", root: str = ".") -> dict:
     block = cfg.stage1
     store, out = root_path / block.input, root_path / block.out
     x_vq, y_vq = (load_vqvae(root_path / block.vqvae / k) for k in ("x", "y"))
-    train = load_views(store, dataset=block.dataset, split=block.train_split, ego_only=block.ego_only)
+    train = stage.train_views(block, root_path)
     val = load_views(store, dataset=block.dataset, split=block.val_split).head(block.eval_views)
     metrics: dict = {"train_views": len(train), "val_views": len(val)}
     with stage_run(STAGE, cfg, root=root_path) as run:

@@ -29,7 +29,7 @@ from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_module, save_module
 from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
-from tasks.voxel_data import ViewSet
+from tasks.voxel_data import ViewSet, load_views
 from typ import distributed
 from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
@@ -47,6 +47,12 @@ def replica_seeds(seed: int, replicas: int) -> list[int]:
 def replica_dir(out: Path, seed: int) -> Path:
     """Where the model trained with ``seed`` lives: ``<out>/seed_<seed>``."""
     return Path(out) / f"seed_{seed}"
+
+
+def train_views(block: Stage1Config, root: Path) -> ViewSet:
+    """The views stage 1 trains on: the training split's ego views, or every agent's (``ego_only``)."""
+    return load_views(Path(root) / block.input, dataset=block.dataset, split=block.train_split,
+                      ego_only=block.ego_only)
 
 
 @torch.no_grad()

@@ -33,7 +33,7 @@ from models.ldm import LatentDiffusion
 from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_module, save_module
 from tasks.pairs import Pair
-from tasks.stage1 import EMA, diffusion_loss, learning_rate, noised_batch
+from tasks.stage1 import EMA, diffusion_loss, learning_rate, noised_batch, train_views
 from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
 from tasks.voxel_data import apply_dihedral
 from typ import distributed
@@ -333,9 +333,7 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None)
 
 def one_stage_steps(cfg, root: Path, source_tuples_n: int) -> tuple[int, int]:
     """(stage-1 steps, stage-2 steps) of the two-stage recipe, whose sum the one-stage model trains."""
-    from tasks.voxel_data import load_views
-
-    target = load_views(root / cfg.stage1.input, dataset=cfg.stage1.dataset, split=cfg.stage1.train_split)
+    target = train_views(cfg.stage1, root)
     return (steps_for(cfg.stage1.epochs, len(target), cfg.stage1.batch_size),
             steps_for(cfg.stage2.epochs, source_tuples_n, cfg.stage2.batch_size))
 
