@@ -16,6 +16,7 @@ from pathlib import Path
 
 from typ.config import Config
 from typ.errors import TypError
+from typ.hashcache import ENV as HASH_CACHE_ENV
 
 STAGES = Config.STAGES
 #: loggers of typ's own code (typ.*, tasks.*), included in Prefect's logging by :func:`_setup_env`
@@ -31,6 +32,8 @@ def _setup_env(root: Path) -> None:
     # the ephemeral API server's 20 s default start-up limit is missed on a loaded 2-core machine
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
     os.environ.setdefault("DVC_NO_ANALYTICS", "1")
+    # input hashes of unchanged files, keyed by their stat (typ.hashcache): a no-op stage reads nothing
+    os.environ.setdefault(HASH_CACHE_ENV, str((root / ".typ" / "hashes.sqlite").resolve()))
     # the stage code's loggers go to the Prefect API with the flow run's (its UI shows them);
     # outside a run they stay local without Prefect's "no flow run" warning
     extra = [n for n in os.environ.get("PREFECT_LOGGING_EXTRA_LOGGERS", "").split(",") if n.strip()]

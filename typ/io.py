@@ -15,6 +15,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from typ.hashcache import cached_digest
+
 TMP_PREFIX = ".tmp-"
 
 
@@ -94,10 +96,17 @@ def remove_stale_temporaries(root: str | os.PathLike) -> int:
 
 
 def hash_files(paths, *, extra: str = "") -> str:
-    """sha256 over the bytes of ``paths`` (in the given order) and their names, plus ``extra``."""
+    """sha256 over the bytes of ``paths`` (in the given order) and their names, plus ``extra``.
+
+    Files whose stat is as it was when they were last hashed are not read again when the CLI has
+    set up the project's cache (:mod:`typ.hashcache`); the digest is the same either way."""
+    paths = [Path(p) for p in paths]
+    return cached_digest(paths, extra, lambda: _read_digest(paths, extra))
+
+
+def _read_digest(paths: list[Path], extra: str) -> str:
     h = hashlib.sha256()
     for p in paths:
-        p = Path(p)
         h.update(p.name.encode())
         h.update(b"\0")
         with open(p, "rb") as fh:
