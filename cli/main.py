@@ -76,6 +76,12 @@ def _cmd_run(args) -> int:
     # one stage: the API the environment names, else Prefect's temporary server for this process
     with terminate_raises(), (prefect_api(Path(os.environ["PREFECT_HOME"])) if args.stage == "all"
                               else contextlib.nullcontext()):
+        if args.stage != "all" and args.runner == "thread" and not args.address:
+            from flows.common import settle_stage
+
+            # every scene unchanged: logged to MLflow, done before Prefect is even imported
+            if settle_stage(args.stage, params=args.params, root=root) is not None:
+                return 0
         from flows.pipeline import WITHOUT_TORCH, pipeline_flow, run_stage
 
         uses_torch = args.stage not in WITHOUT_TORCH

@@ -1,9 +1,13 @@
 """What every stage flow shares: config + MLflow run, per-scene fan-out with a progress bar,
-metrics written for DVC."""
+metrics written for DVC.
+
+Prefect is imported where it is used, not here: :func:`settle_unchanged` runs before it is."""
 from __future__ import annotations
 
 import contextlib
 import functools
+import importlib
+import os
 import logging
 import re
 import shutil
@@ -12,15 +16,10 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from prefect import task
-from prefect.cache_policies import NO_CACHE
-from prefect.futures import as_completed
-from prefect.task_runners import ThreadPoolTaskRunner
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-from typ.config import Config
+from tasks.scene_stage import SceneStage
+from typ.config import Config, load_config
 from typ.errors import TypError
-from typ.io import remove_stale_temporaries, write_json
+from typ.io import TMP_PREFIX, remove_stale_temporaries, write_json
 from typ.tracking import is_main_process, stage_run
 
 log = logging.getLogger("typ")
@@ -42,6 +41,11 @@ def per_scene(fn: Callable, items: Sequence, *, label: Callable[[object], str], 
     the error; bad input (TypError) is deterministic, so it is never retried. Where each item
     ran (a Dask worker's address, or ``thread``) is logged at INFO.
     """
+    from prefect import task
+    from prefect.cache_policies import NO_CACHE
+    from prefect.futures import as_completed
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
     @functools.wraps(fn)
     def placed(item, **kw):
         return fn(item, **kw), worker_address()
@@ -111,6 +115,8 @@ def runner(workers: int, kind: str = "thread", address: str | None = None):
     single-threaded processes when no address is given.
     """
     if kind == "thread":
+        from prefect.task_runners import ThreadPoolTaskRunner
+
         if address:
             raise TypError("typ run", "--address", "no address with --runner thread (only with --runner dask)", address)
         return ThreadPoolTaskRunner(max_workers=workers)
@@ -173,6 +179,9 @@ def artifact_key(name: str) -> str:
 
 def plain_task(fn: Callable, name: str):
     """``fn`` as a Prefect task without result caching: training and sampling must really run."""
+    from prefect import task
+    from prefect.cache_policies import NO_CACHE
+
     return task(fn, name=name, cache_policy=NO_CACHE)
 
 
@@ -216,36 +225,86 @@ class Timer:
         self.seconds = time.perf_counter() - self.t0
 
 
-def per_scene_stage(stage: str, cfg: Config, root: Path, *, out: Path, plan: Callable[[], tuple[list, list[Path]]],
-                    work: Callable, work_kwargs: dict, label: Callable[[object], str],
-                    summarize: Callable[[list], dict], unchanged: Callable | None = None) -> dict:
+def per_scene_stage(stage: str, cfg: Config, root: Path, spec: SceneStage) -> dict:
     """The shape every per-scene stage shares, inside one MLflow run.
 
-    Remove temporaries a killed run left under ``out``; ``plan()`` gives the items to do and
-    the stale outputs (whose inputs are gone) to delete; ``work(item, **work_kwargs)`` runs per
-    item as a Prefect task and returns a dict with ``scenario`` and ``skipped`` (None or the
-    reason); ``summarize(results)`` gives the stage metrics, written to ``metrics/<stage>.json``
-    for DVC and logged to MLflow. ``unchanged(item, **work_kwargs)``, when given, is the cheap
-    check ``work`` starts with: the skipped result of an item whose stored output is current,
-    or None. Such items are settled here and never become Prefect tasks (a task costs ~20 ms
-    of orchestration, which was most of a no-op stage on a hundred scenes).
+    Remove temporaries a killed run left under ``spec.out``; ``spec.plan()`` gives the items to
+    do and the stale outputs to delete; each item runs ``spec.work`` as a Prefect task, except
+    those ``spec.unchanged`` settles here (a task costs ~20 ms of orchestration, which was most
+    of a no-op stage on a hundred scenes); ``spec.summarize(results)`` gives the stage metrics,
+    written to ``metrics/<stage>.json`` for DVC and logged to MLflow.
     """
     with stage_run(stage, cfg, root=root) as run:
         with Timer() as timer:
-            cleaned = remove_stale_temporaries(out) if out.exists() else 0
-            items, stale = plan()
+            cleaned = remove_stale_temporaries(spec.out) if spec.out.exists() else 0
+            items, stale = spec.plan()
             for path in stale:
                 log.info("%s: removing %s: its input is gone", stage, path)
                 shutil.rmtree(path) if path.is_dir() else path.unlink()
             settled = {i: r for i, item in enumerate(items)
-                       if unchanged is not None and (r := unchanged(item, **work_kwargs)) is not None}
+                       if spec.unchanged is not None and (r := spec.unchanged(item, **spec.work_kwargs)) is not None}
             todo = [item for i, item in enumerate(items) if i not in settled]
-            ran = iter(per_scene(work, todo, label=label, stage=stage, retries=IO_RETRIES, **work_kwargs) if todo else [])
+            ran = iter(per_scene(spec.work, todo, label=spec.label, stage=stage, retries=IO_RETRIES,
+                                 **spec.work_kwargs) if todo else [])
             results = [settled[i] if i in settled else next(ran) for i in range(len(items))]
-        metrics = summarize(results)
-        metrics.update(removed_stale=len(stale), removed_temporaries=cleaned, seconds_total=round(timer.seconds, 3))
-        for r in results:
-            if r["skipped"]:
-                log.info("%s: skipped %s (%s)", stage, r["scenario"], r["skipped"])
-        finish_stage(stage, run, metrics, root)
+        return _finish_scenes(stage, run, spec, results, root, removed_stale=len(stale), removed_temporaries=cleaned,
+                              seconds_total=round(timer.seconds, 3))
+
+
+def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> dict | None:
+    """A per-scene stage with nothing to do, settled without Prefect: its metrics, or None.
+
+    When ``spec.out`` holds no temporaries, no output is stale and ``spec.unchanged`` settles
+    every item, the stage's MLflow run is logged as :func:`per_scene_stage` would log it (the
+    same metrics, ``metrics/<stage>.json``, the skip reasons at INFO), tagged ``typ.prefect`` =
+    ``not started: every scene unchanged``, and the metrics are returned. Otherwise nothing is
+    touched and None is returned, at the first item with work: the caller runs the stage's flow,
+    which checks again. This is what lets ``typ run <stage>`` with nothing to do skip importing
+    Prefect and starting a flow run (about half of a no-op stage's seconds).
+    """
+    if spec.unchanged is None:
+        return None
+    with Timer() as timer:
+        if spec.out.exists() and next(spec.out.rglob(TMP_PREFIX + "*"), None) is not None:
+            return None
+        items, stale = spec.plan()
+        if stale:
+            return None
+        results = []
+        for item in items:
+            if (r := spec.unchanged(item, **spec.work_kwargs)) is None:
+                return None
+            results.append(r)
+    with stage_run(stage, cfg, root=root, tags={"typ.prefect": "not started: every scene unchanged"}) as run:
+        return _finish_scenes(stage, run, spec, results, root, removed_stale=0, removed_temporaries=0,
+                              seconds_total=round(timer.seconds, 3))
+
+
+#: per-scene stages whose ``tasks.<stage>.scene_stage`` needs neither torch nor a trained model,
+#: so ``typ run <stage>`` asks :func:`settle_stage` before it imports Prefect
+SETTLED_BEFORE_PREFECT = ("simulate", "voxelize")
+
+
+def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path(".")) -> dict | None:
+    """:func:`settle_unchanged` for ``stage`` when it is one of :data:`SETTLED_BEFORE_PREFECT`
+    and this process is not one rank of several (under torchrun such a stage is refused by
+    ``flows.pipeline.run_stage``); None otherwise, or when the stage has work."""
+    if stage not in SETTLED_BEFORE_PREFECT or int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        return None
+    cfg = load_config(root / params)
+    spec = importlib.import_module(f"tasks.{stage}").scene_stage(cfg, root)
+    metrics = settle_unchanged(stage, cfg, root, spec)
+    if metrics is not None:
+        log.info("%s: every scene unchanged (%s); settled without a Prefect flow run", stage,
+                 metrics.get("skipped_unchanged"))
+    return metrics
+
+
+def _finish_scenes(stage: str, run, spec: SceneStage, results: list[dict], root: Path, **counts) -> dict:
+    metrics = spec.summarize(results)
+    metrics.update(counts)
+    for r in results:
+        if r["skipped"]:
+            log.info("%s: skipped %s (%s)", stage, r["scenario"], r["skipped"])
+    finish_stage(stage, run, metrics, root)
     return metrics

@@ -12,6 +12,7 @@ from tasks import generate as stage
 from tasks.edit import edit_figure, edit_view
 from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
 from tasks.pipeline import TYPPipeline
+from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
@@ -55,10 +56,10 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
                   and (p.parent.name, p.name) not in kept]
         return items, stale
 
-    return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_scenario,
-                           work_kwargs={"cfg": block, "generator": generator, "out": out},
-                           label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize,
-                           unchanged=stage.unchanged)
+    return per_scene_stage(STAGE, cfg, root_path, SceneStage(
+        out=out, plan=plan, work=stage.run_scenario, work_kwargs={"cfg": block, "generator": generator, "out": out},
+        label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize,
+        unchanged=stage.unchanged))
 
 
 def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, params: str,

@@ -17,13 +17,4 @@ STAGE = "simulate"
 def simulate_flow(params: str = "params.yaml", root: str = ".") -> dict:
     root_path = Path(root)
     cfg = load_config(root_path / params)
-    out = root_path / cfg.simulate.out
-    # a real dataset's folders are checked here, before the stage's run starts or writes anything
-    jobs = stage.plan_jobs(cfg.simulate, root=root_path, out=out, where=cfg.source)
-
-    def plan():
-        return jobs, stage.stale_scenarios(jobs, out)
-
-    return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_job,
-                           work_kwargs={"out": out}, label=lambda job: job.name, summarize=stage.summarize,
-                           unchanged=stage.unchanged)
+    return per_scene_stage(STAGE, cfg, root_path, stage.scene_stage(cfg, root_path))

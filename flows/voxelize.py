@@ -8,7 +8,6 @@ from prefect import flow
 from flows.common import per_scene_stage
 from tasks import voxelize as stage
 from typ.config import load_config
-from typ.errors import TypError
 
 STAGE = "voxelize"
 
@@ -17,16 +16,4 @@ STAGE = "voxelize"
 def voxelize_flow(params: str = "params.yaml", root: str = ".") -> dict:
     root_path = Path(root)
     cfg = load_config(root_path / params)
-    source, out = root_path / cfg.voxelize.input, root_path / cfg.voxelize.out
-    if not source.is_dir():
-        raise TypError(source, "voxelize.input", "a folder of <dataset>/<split>/<scenario> (run simulate first)")
-    grid = stage.to_grid(cfg.voxelize.grid)
-
-    def plan():
-        items = stage.plan_inputs(source)
-        return items, stage.stale_outputs(items, out)
-
-    return per_scene_stage(STAGE, cfg, root_path, out=out, plan=plan, work=stage.run_scene,
-                           work_kwargs={"cfg": cfg.voxelize, "out": out}, label=lambda item: item.name,
-                           summarize=lambda results: stage.summarize(results, grid),
-                           unchanged=stage.unchanged)
+    return per_scene_stage(STAGE, cfg, root_path, stage.scene_stage(cfg, root_path))

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from typ import __version__
-from typ.config import SimulateConfig, as_dict
+from tasks.scene_stage import SceneStage
+from typ.config import Config, SimulateConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
 from typ.io import SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_json
@@ -237,3 +238,13 @@ def summarize(results: list[dict]) -> dict:
         if isinstance(group, dict) and group["views"]:
             group["points_per_view"] = round(group["points"] / group["views"], 1)
     return metrics
+
+
+def scene_stage(cfg: Config, root: Path) -> SceneStage:
+    """The stage's pieces for ``flows.common``. A real dataset's folders are checked here, before
+    the stage's run starts or writes anything."""
+    out = root / cfg.simulate.out
+    jobs = plan_jobs(cfg.simulate, root=root, out=out, where=cfg.source)
+    return SceneStage(out=out, plan=lambda: (jobs, stale_scenarios(jobs, out)), work=run_job,
+                      work_kwargs={"out": out}, label=lambda job: job.name, summarize=summarize,
+                      unchanged=unchanged)

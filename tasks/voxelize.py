@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from typ.config import GridConfig, VoxelizeConfig
+from tasks.scene_stage import SceneStage
+from typ.config import Config, GridConfig, VoxelizeConfig
+from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene
 import typ.formats.opv2v
 import typ.store
@@ -132,3 +134,19 @@ def summarize(results: list[dict], grid: Grid) -> dict:
         metrics["points_in_grid_fraction"] = round(sum(r["points_in_grid"] for r in done) / max(points, 1), 4)
         metrics["views_per_second"] = round(views / max(metrics["seconds_voxelizing"], 1e-9), 2)
     return metrics
+
+
+def scene_stage(cfg: Config, root: Path) -> SceneStage:
+    """The stage's pieces for ``flows.common``: every scenario under ``voxelize.input``."""
+    source, out = root / cfg.voxelize.input, root / cfg.voxelize.out
+    if not source.is_dir():
+        raise TypError(source, "voxelize.input", "a folder of <dataset>/<split>/<scenario> (run simulate first)")
+    grid = to_grid(cfg.voxelize.grid)
+
+    def plan():
+        items = plan_inputs(source)
+        return items, stale_outputs(items, out)
+
+    return SceneStage(out=out, plan=plan, work=run_scene, work_kwargs={"cfg": cfg.voxelize, "out": out},
+                      label=lambda item: item.name, summarize=lambda results: summarize(results, grid),
+                      unchanged=unchanged)

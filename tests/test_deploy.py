@@ -169,6 +169,43 @@ def _scene_unchanged(scene: str, *, out) -> dict | None:
     return {"scenario": scene, "skipped": "unchanged"} if scene.startswith("old") else None
 
 
+def _probe_stage(items, tmp_path):
+    from tasks.scene_stage import SceneStage
+
+    return SceneStage(out=tmp_path / "out", plan=lambda: (items, []), work=_scene_work, work_kwargs={"out": tmp_path},
+                      label=str, summarize=lambda rs: {"order": [r["scenario"] for r in rs],
+                                                       "ran": sum(r["skipped"] is None for r in rs)},
+                      unchanged=_scene_unchanged)
+
+
+def test_settle_unchanged_logs_a_no_op_stage_only_when_nothing_has_work(tmp_path, monkeypatch):
+    """Before Prefect starts: every scene unchanged, no stale output, no temporary -> the stage's
+    MLflow run and metrics as its flow would write them; any work at all -> None, nothing logged."""
+    import contextlib
+
+    from flows import common
+    from tasks.scene_stage import SceneStage
+
+    runs, finished = [], {}
+    monkeypatch.setattr(common, "stage_run", lambda stage, cfg, root, tags: runs.append(tags) or
+                        contextlib.nullcontext(None))
+    monkeypatch.setattr(common, "finish_stage", lambda stage, run, metrics, root: finished.update(metrics))
+    CALLS.clear()
+    metrics = common.settle_unchanged("probe", None, tmp_path, _probe_stage(["old_a", "old_b"], tmp_path))
+    assert metrics["order"] == ["old_a", "old_b"] and metrics["ran"] == 0 and finished == metrics
+    assert (metrics["removed_stale"], metrics["removed_temporaries"]) == (0, 0) and metrics["seconds_total"] >= 0
+    assert runs == [{"typ.prefect": "not started: every scene unchanged"}] and CALLS == {}
+    runs.clear()
+    assert common.settle_unchanged("probe", None, tmp_path, _probe_stage(["old_a", "new_b"], tmp_path)) is None
+    stale = _probe_stage(["old_a"], tmp_path)
+    stale = SceneStage(**{**stale.__dict__, "plan": lambda: (["old_a"], [tmp_path / "out" / "gone"])})
+    assert common.settle_unchanged("probe", None, tmp_path, stale) is None
+    (tmp_path / "out" / "scene").mkdir(parents=True)
+    (tmp_path / "out" / "scene" / ".tmp-x.parquet.1").write_bytes(b"partial")   # a killed run's temporary
+    assert common.settle_unchanged("probe", None, tmp_path, _probe_stage(["old_a"], tmp_path)) is None
+    assert runs == [] and CALLS == {} and (tmp_path / "out" / "scene" / ".tmp-x.parquet.1").exists()
+
+
 def test_per_scene_stage_settles_unchanged_scenes_without_a_prefect_task(api, tmp_path, monkeypatch):
     """A no-op stage must not pay a Prefect task per unchanged scene; results keep the plan's order."""
     import contextlib
@@ -186,11 +223,7 @@ def test_per_scene_stage_settles_unchanged_scenes_without_a_prefect_task(api, tm
 
     @flow(name="settle")
     def run(items):
-        return common.per_scene_stage("probe", None, tmp_path, out=tmp_path / "out", plan=lambda: (items, []),
-                                      work=_scene_work, work_kwargs={"out": tmp_path}, label=str,
-                                      summarize=lambda rs: {"order": [r["scenario"] for r in rs],
-                                                            "ran": sum(r["skipped"] is None for r in rs)},
-                                      unchanged=_scene_unchanged)
+        return common.per_scene_stage("probe", None, tmp_path, _probe_stage(items, tmp_path))
 
     CALLS.clear()
     run(["old_a", "new_b", "old_c", "new_d"])

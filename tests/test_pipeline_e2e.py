@@ -426,6 +426,35 @@ def test_second_repro_does_nothing(project):
     assert before == after
 
 
+def test_a_stage_with_nothing_to_do_is_settled_before_prefect_is_imported(project):
+    """`typ run voxelize` with every scene unchanged: no Prefect import and no flow run, the MLflow
+    run and metrics the flow would log, no output touched. One input rewritten with the same
+    bytes has a new stat: the hash cache misses, the file is read again and found unchanged."""
+    import mlflow
+
+    from typ.config import load_config
+
+    proj, env, _ = project
+    cfg = load_config(proj / "params.yaml")
+    pcd = sorted((proj / cfg.voxelize.input).rglob("*.pcd"))[0]
+    pcd.write_bytes(pcd.read_bytes())
+    out = proj / cfg.voxelize.out
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    code = "import sys; from cli.main import main; rc = main(['run', 'voxelize']); print(rc, 'prefect' in sys.modules)"
+    ran = _run([str(VENV_BIN / "python"), "-c", code], proj, env)
+    assert ran.stdout.split()[-2:] == ["0", "False"], ran.stdout
+    vox = json.loads((proj / "metrics" / "voxelize.json").read_text())
+    assert (vox["scenarios"], vox["voxelized"], vox["skipped_unchanged"], vox["removed_stale"]) == (8, 0, 8, 0)
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+    assert (proj / ".typ" / "hashes.sqlite").is_file()
+    client = mlflow.MlflowClient(tracking_uri=env["MLFLOW_TRACKING_URI"])
+    exp = client.get_experiment_by_name("typ")
+    run = client.search_runs([exp.experiment_id], "tags.`typ.stage` = 'voxelize'", order_by=["attributes.start_time DESC"],
+                             max_results=1)[0]
+    assert run.info.status == "FINISHED" and run.data.tags["typ.prefect"] == "not started: every scene unchanged"
+    assert run.data.metrics["skipped_unchanged"] == 8 and run.data.params["voxelize.workers"] == "2"
+
+
 def test_adding_a_scenario_recomputes_only_that_one(project):
     proj, env, _ = project
     params = yaml.safe_load((proj / "params.yaml").read_text())

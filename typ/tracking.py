@@ -131,8 +131,10 @@ def mark_killed_runs(client, experiment_id: str, stage: str) -> list[str]:
 
 
 @contextlib.contextmanager
-def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["StageRun"]:
-    """One MLflow run for one stage execution: params of the stage's block, tags, then the body.
+def stage_run(stage: str, cfg: Config, *, root: Path | str = ".", tags: dict[str, str] | None = None
+              ) -> Iterator["StageRun"]:
+    """One MLflow run for one stage execution: params of the stage's block, tags (typ's, then
+    ``tags``), then the body.
 
     Before it starts, earlier runs of the stage that a killed process left RUNNING are marked
     KILLED (:func:`mark_killed_runs`); a body ended by SIGTERM or Ctrl-C ends its run KILLED.
@@ -161,6 +163,7 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".") -> Iterator["S
         "dvc.stage": stage,
         **_process_tags(),
         **{tag: os.environ[env] for env, tag in DVC_EXP_TAGS.items() if os.environ.get(env)},
+        **(tags or {}),
     }
     active = mlflow.active_run()
     parent = active.info.run_id if active is not None else os.environ.get(PARENT_ENV)

@@ -1,0 +1,29 @@
+"""What a per-scene stage is, without Prefect: the pieces ``flows.common`` runs.
+
+Building one reads the params and lists the scenes but imports no orchestration, so the CLI can
+settle a stage whose every scene is unchanged before Prefect is imported
+(``flows.common.settle_unchanged``), and the stage's flow runs the same pieces otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+
+@dataclass(frozen=True)
+class SceneStage:
+    """``plan()`` gives the items to do and the stale outputs (whose inputs are gone) to delete;
+    ``work(item, **work_kwargs)`` makes one item's output and returns a dict with ``scenario``
+    and ``skipped`` (None or the reason); ``unchanged(item, **work_kwargs)`` is the cheap check
+    ``work`` starts with (the skipped result of an item whose stored output is current, else
+    None); ``summarize(results)`` gives the stage's metrics; ``label(item)`` names an item in
+    logs and task names."""
+
+    out: Path
+    plan: Callable[[], tuple[list, list[Path]]]
+    work: Callable[..., dict]
+    label: Callable[[object], str]
+    summarize: Callable[[list[dict]], dict]
+    work_kwargs: dict = field(default_factory=dict)
+    unchanged: Callable[..., dict | None] | None = None
