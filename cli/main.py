@@ -183,6 +183,16 @@ def _cmd_check(args) -> int:
     return 0
 
 
+def _cmd_schema(args) -> int:
+    from typ.config_schema import config_schema
+    from typ.io import write_json
+
+    path = Path(args.root) / args.out
+    write_json(path, config_schema())
+    print(f"wrote {path}")
+    return 0
+
+
 def _cmd_report(args) -> int:
     from typ.report import write_summary
 
@@ -306,6 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=_cmd_compare)
     p = sub.add_parser("check", help="load and validate params.yaml; print the values in effect")
     p.set_defaults(fn=_cmd_check)
+    p = sub.add_parser("schema", help="write the JSON Schema of params.yaml (for editors; params.yaml's first line "
+                                      "points a YAML language server at it)")
+    p.add_argument("--out", default="params.schema.json", help="path relative to the root (default: params.schema.json)")
+    p.set_defaults(fn=_cmd_schema)
     p = sub.add_parser("report", help="write reports/summary.md from the stage metrics and benches")
     p.set_defaults(fn=_cmd_report)
     p = sub.add_parser("generate", help="turn KITTI / nuScenes / Waymo frames into collaborative OPV2V scenarios "
