@@ -21,6 +21,13 @@ def one_torch_thread():
     torch.set_num_threads(threads)
 
 
+@pytest.fixture(autouse=True)
+def _own_hash_cache(monkeypatch):
+    """An in-process ``typ`` call points TYP_HASH_CACHE at its project (``os.environ.setdefault``);
+    it is unset around every test, so that no test inherits another's cache."""
+    monkeypatch.delenv("TYP_HASH_CACHE", raising=False)
+
+
 #: the files that take minutes (the pipeline end to end, the stages run as processes): first
 LONG_FILES = ("test_pipeline_e2e.py", "test_crash_safety.py", "test_real_data.py", "test_dask.py",
               "test_deploy.py", "test_determinism.py", "test_server_lifecycle.py", "test_bad_inputs.py")

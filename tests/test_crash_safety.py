@@ -68,6 +68,8 @@ def stage_env(config: pytest.Config, tmp_path_factory) -> dict:
             "PREFECT_API_URL": server.api_url, "PREFECT_HOME": str(home / "prefect"),
             "PREFECT_LOGGING_LEVEL": "WARNING", "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
             "MLFLOW_TRACKING_URI": f"sqlite:///{home / 'mlruns.db'}", "DVC_NO_ANALYTICS": "1",
+            # the input-hash cache is state like MLflow's store: outside the projects the tests compare
+            "TYP_HASH_CACHE": str(home / "hashes.sqlite"),
             "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     return config.stash[_ENV]
 

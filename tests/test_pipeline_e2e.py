@@ -77,7 +77,9 @@ def project(tmp_path_factory):
     _copy_project(proj)
     (proj / "params.yaml").write_text(yaml.safe_dump(SMALL, sort_keys=False))
     # PYTHONPATH: the copy's code, not the checkout the venv's editable install points at
-    env = {**os.environ, "PATH": f"{VENV_BIN}:{os.environ['PATH']}", "PYTHONPATH": str(proj),
+    # no TYP_HASH_CACHE that an in-process CLI call of another test left: the CLI's default, <proj>/.typ
+    env = {**{k: v for k, v in os.environ.items() if k != "TYP_HASH_CACHE"},
+           "PATH": f"{VENV_BIN}:{os.environ['PATH']}", "PYTHONPATH": str(proj),
            "MLFLOW_TRACKING_URI": f"sqlite:///{proj / 'mlruns.db'}", "PREFECT_HOME": str(proj / ".prefect"),
            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DVC_NO_ANALYTICS": "1", "DO_NOT_TRACK": "1",
            "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
