@@ -129,7 +129,7 @@ def test_pip_install_into_a_clean_venv_gives_a_working_typ(tmp_path):
     project = tmp_path / "project"   # no checkout here: the installed package and its profiles only
     project.mkdir()
     params = {"profile": "tiny", "simulate": {"frames": 1, "azimuth_step_deg": 2.0, "agents_min": 2,
-                                              "agents_max": 2, "workers": 1,
+                                              "agents_max": 2, "workers": 1, "domains": {},
                                               "scenarios": {"source": {"train": 1}, "target": {"train": 0},
                                                             "real_cav": {"train": 0}}}}
     (project / "params.yaml").write_text(yaml.safe_dump(params))
