@@ -1,33 +1,61 @@
-"""Collaborative semantic scene completion (V2VSSC): samples with their maps, training, no/late fusion, scores.
+"""Stage ``ssc``: collaborative semantic scene completion (V2VSSC §III–IV, Table I, Figs. 4–5).
 
 Data: the fusion samples of :class:`tasks.fusion_data.FusionDataset` (OPV2V layout, 70 m
 communication range, delay and pose noise as there) on V2VSSC's grid, each with the semantic
-occupancy maps written beside the clouds (:mod:`typ.ssc`). The network is one single-agent
-model, :func:`models.ssc.ssc_detector` under :class:`models.fusion.NoFusion`, trained on every
-agent's own cloud against its own map with class-balanced cross-entropy (the weights from the
-training maps' class counts, :func:`models.ssc.class_weights`). No fusion runs it on the ego's
-cloud; late fusion runs it on every agent in range and merges the maps in the ego frame,
-keeping per voxel the most confident agent (:func:`models.ssc.merge_max_confidence`).
-Early and intermediate fusion (AttFuse, V2X-ViT) are not built here yet.
+occupancy maps the simulate stage writes beside the clouds (:mod:`typ.ssc`).
+
+Networks (:func:`models.ssc.ssc_detector`, PointPillars with an occupancy head) are reached through
+the fusion-method registry of ``models/fusion.py``, as the detectors are:
+
+- ``single``: under :class:`models.fusion.NoFusion`, trained on every agent's own cloud against its
+  own map. No fusion runs it on the ego's cloud; late fusion runs it on every agent in range and
+  merges the maps in the ego frame, keeping per voxel the most confident agent
+  (:func:`models.ssc.merge_max_confidence`), as V2VSSC does.
+- ``early`` and ``attfuse``: :class:`~models.fusion.EarlyFusion` (the agents' clouds merged in the
+  ego frame) and :class:`~models.fusion.AttFuse` (features warped and attended in the ego frame),
+  warm-started from the single-agent network and trained on the ego's map.
+
+Loss: cross-entropy weighted ``1 / ln(eps + share)`` (:func:`models.ssc.class_weights`, the shares
+of the training maps' classes), Adam with cosine decay, one view or sample a step in a seeded order.
+Every network is saved (safetensors + JSON) with a key of its training config, seed, init and
+data, and a rerun loads instead of training when the key matches: a stage killed mid-way resumes
+from the last network it finished.
+
+Scores: :func:`typ.metrics.ssc_scores` of the ego's maps against the ego's truth, counts pooled
+over the test frames (SemanticKITTI), intervals from a bootstrap over test scenarios and seeds.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+import copy
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from models.fusion import NoFusion
+from models.fusion import FusionModule, NoFusion, build, compressed, merge_agent_points
 from models.ssc import SSC_LIDAR_RANGE, class_weights, merge_max_confidence, ssc_detector, warp_to_ego
+from tasks.artifacts import load_if_key, save_module
 from tasks.fusion_data import FusionDataset, FusionSample
+from tasks.training import seed_everything
+from typ.config import SSC_METHODS, SscConfig
 from typ.errors import TypError
-from typ.metrics.ssc import SSC_CLASSES, ssc_iou
+from typ.io import hash_obj
+from typ.metrics.intervals import bootstrap
+from typ.metrics.ssc import SSC_CLASSES, ssc_confusion, ssc_scores
 from typ.ssc import SSC_GRID, occupancy_path, read_occupancy
 
-#: fusion methods this module runs
-METHODS: tuple[str, ...] = ("no_fusion", "late_fusion")
+STAGE = "ssc"
+#: the network each method runs (no and late fusion share the single-agent one)
+NETWORK = {"none": "single", "early": "early", "late": "single", "attfuse": "attfuse"}
+#: display names of the methods, V2VSSC Table I's rows
+DISPLAY = {"none": "No Fusion", "early": "Early Fusion", "late": "Late Fusion", "attfuse": "Intermediate (AttFuse)"}
+#: the figures scored, each with an interval: geometric, semantic and per class
+FIGURES = ("iou", "miou", "ciou", "precision", "recall", *(f"iou_{c}" for c in SSC_CLASSES[1:]))
+N_CLASSES = len(SSC_CLASSES)
+assert set(NETWORK) == set(SSC_METHODS)
 
 
 def ssc_dataset(root, **kw) -> FusionDataset:
@@ -45,84 +73,361 @@ def sample_maps(ds: FusionDataset, i: int, sample: FusionSample | None = None) -
             for agent, d in zip(sample.agent_ids, sample.time_delay)]
 
 
+def ego_map(ds: FusionDataset, i: int, sample: FusionSample) -> np.ndarray:
+    """The ego's true (X, Y, Z) map of sample ``i`` (its current frame)."""
+    return read_occupancy(occupancy_path(ds.scenarios[ds.index[i][0]][0], sample.agent_ids[0], sample.timestamp))
+
+
+def model_kwargs(block: SscConfig) -> dict:
+    """:func:`models.ssc.ssc_detector` arguments of the config's network."""
+    n = block.network
+    return dict(layer_nums=tuple(n.layer_nums), num_filters=tuple(n.num_filters),
+                num_upsample_filters=tuple(n.num_upsample_filters), pillar_channels=n.pillar_channels,
+                head_hidden=n.head_hidden, max_pillars=n.max_pillars)
+
+
+# ---------------------------------------------------------------- training data
+
+
 @dataclass
-class SscModel:
-    """A trained single-agent SSC network and how it was trained."""
+class TrainingSet:
+    """What the networks learn from: every agent's (cloud, own map) and every sample with its ego map."""
 
-    model: NoFusion
-    weights: np.ndarray
-    losses: list[float]
+    views: list[tuple[np.ndarray, np.ndarray]]
+    samples: list[FusionSample]
+    ego_maps: list[np.ndarray]
+    key: str = ""
+
+    @classmethod
+    def read(cls, ds: FusionDataset) -> "TrainingSet":
+        views, samples, maps = [], [], []
+        ident = []
+        for i in range(len(ds)):
+            sample = ds[i]
+            own = sample_maps(ds, i, sample)
+            views += list(zip(sample.clouds, own))
+            samples.append(sample)
+            maps.append(own[0])
+            ident.append((sample.scenario, sample.timestamp, list(sample.agent_ids), [len(c) for c in sample.clouds],
+                          round(float(sum(np.sum(c[:, :3], dtype=np.float64) for c in sample.clouds)), 2),
+                          [int(np.count_nonzero(m)) for m in own], [int(m.sum(dtype=np.int64)) for m in own]))
+        if not views:
+            raise TypError(ds.root, "samples", "at least one training sample", "none")
+        return cls(views, samples, maps, hash_obj(ident)[:16])
+
+    def class_counts(self) -> np.ndarray:
+        """Voxels of each class over every agent's map."""
+        return sum(np.bincount(m.reshape(-1), minlength=N_CLASSES) for _, m in self.views)
 
 
-def train(ds: FusionDataset, *, steps: int, seed: int, lr: float = 2e-3, model_kw: dict | None = None) -> SscModel:
-    """Train :func:`models.ssc.ssc_detector` for ``steps`` steps of one agent view each (the views of
-    every sample in turn, order from ``seed``) with class-weighted cross-entropy; Adam, cosine decay."""
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise TypError("tasks.ssc.train", "steps", "an integer >= 1", steps)
-    torch.manual_seed(seed)
-    views = []
-    for i in range(len(ds)):
-        sample = ds[i]
-        for cloud, labels in zip(sample.clouds, sample_maps(ds, i, sample)):
-            views.append((cloud, labels))
-    counts = np.bincount(np.concatenate([v[1].reshape(-1) for v in views]), minlength=len(SSC_CLASSES))
-    weights = class_weights(counts)
-    det = ssc_detector(**(model_kw or {}))
-    model = NoFusion(detector=det)
+def _fit(model: FusionModule, step: Callable[[int], tuple[torch.Tensor, np.ndarray]], n_items: int, *, steps: int,
+         seed: int, lr: float, weights: np.ndarray, name: str) -> list[float]:
+    """``steps`` Adam steps (cosine decay) of class-weighted cross-entropy, item ``k`` of a seeded
+    order each (every item once before any twice); ``step(k)`` -> (logits (1, K, X, Y, Z), labels)."""
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
-    order = np.random.default_rng(seed).permutation(np.resize(np.arange(len(views)), steps))
+    order = np.random.default_rng(seed).permutation(np.resize(np.arange(n_items), steps))
     w = torch.tensor(weights, dtype=torch.float32)
-    one = torch.ones(1, 1, dtype=torch.bool)
     losses = []
     model.train()
-    for k in order:
-        cloud, labels = views[k]
-        logits = model(det.pillarize([cloud]), agent_mask=one)["occ"]
+    for n, k in enumerate(order):
+        logits, labels = step(int(k))
         loss = F.cross_entropy(logits, torch.as_tensor(labels, dtype=torch.long)[None], weight=w)
+        if not torch.isfinite(loss):
+            raise TypError(f"{STAGE}:{name}", "loss", "a finite training loss", f"{loss.item()} at step {n}")
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
         losses.append(loss.item())
     model.eval()
-    return SscModel(model, weights, losses)
+    return losses
+
+
+def train_single(data: TrainingSet, *, steps: int, seed: int, lr: float, model_kw: dict,
+                 weights: np.ndarray) -> tuple[NoFusion, list[float]]:
+    """The single-agent network, one agent view (its own cloud, its own map) a step."""
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise TypError("tasks.ssc.train_single", "steps", "an integer >= 1", steps)
+    seed_everything(seed)
+    det = ssc_detector(**model_kw)
+    model = NoFusion(detector=det)
+    one = torch.ones(1, 1, dtype=torch.bool)
+
+    def step(k: int):
+        cloud, labels = data.views[k]
+        return model(det.pillarize([cloud]), agent_mask=one)["occ"], labels
+
+    return model, _fit(model, step, len(data.views), steps=steps, seed=seed, lr=lr, weights=weights, name="single")
+
+
+def _inputs(module: FusionModule, method: str, sample: FusionSample) -> tuple[dict, dict]:
+    """(pillars, forward keywords) of one sample for ``method``'s module (batch of one)."""
+    det = module.detector
+    if method == "early":
+        return det.pillarize([merge_agent_points(sample.clouds, sample.transforms)]), \
+            {"agent_mask": torch.ones(1, 1, dtype=torch.bool)}
+    n = len(sample.clouds)
+    return det.pillarize(list(sample.clouds)), {
+        "agent_mask": torch.ones(1, n, dtype=torch.bool),
+        "transforms": torch.from_numpy(np.asarray(sample.transforms, dtype=np.float64))[None],
+        "time_delay": torch.as_tensor(np.asarray(sample.time_delay), dtype=torch.long)[None]}
+
+
+def train_fused(method: str, data: TrainingSet, single: NoFusion, *, steps: int, seed: int, lr: float,
+                weights: np.ndarray) -> tuple[FusionModule, list[float]]:
+    """Early fusion or AttFuse from the single-agent network, one sample (ego map) a step."""
+    if NETWORK.get(method, "single") == "single":
+        raise TypError("tasks.ssc.train_fused", "method", "early or attfuse (a network trained on the ego's map)",
+                       method)
+    seed_everything(seed)
+    module = build(method, copy.deepcopy(single.detector))
+    module.warm_start(single.detector)
+
+    def step(k: int):
+        pillars, kw = _inputs(module, method, data.samples[k])
+        return module(pillars, **kw)["occ"], data.ego_maps[k]
+
+    return module, _fit(module, step, len(data.samples), steps=steps, seed=seed, lr=lr, weights=weights, name=method)
+
+
+@dataclass
+class SscNetworks:
+    """The trained networks of one seed, by network name (:data:`NETWORK`)."""
+
+    seed: int
+    networks: dict[str, FusionModule]
+    losses: dict[str, list[float]] = field(default_factory=dict)
+    keys: dict[str, str] = field(default_factory=dict)
+
+    def for_method(self, method: str) -> FusionModule:
+        return self.networks[NETWORK[method]]
+
+
+def _network_config(name: str, model_kw: dict) -> dict:
+    return {"network": name, "model": {k: list(v) if isinstance(v, tuple) else v for k, v in model_kw.items()}}
+
+
+def _build(config: dict) -> FusionModule:
+    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in config["model"].items()}
+    name = config["network"]
+    det = ssc_detector(**kw)
+    return NoFusion(detector=det) if name == "single" else build(name, det)
+
+
+def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: int, out: Path,
+               log: Callable[[str], None] = print) -> SscNetworks:
+    """Every network the config's methods need, for ``seed``: loaded from ``out/models`` when a
+    network with the same key is there (a finished or earlier run), trained and saved otherwise."""
+    model_kw = model_kwargs(block)
+    needed = ["single"] + [NETWORK[m] for m in block.methods if NETWORK[m] != "single"]
+    result = SscNetworks(seed, {})
+    base = {"data": data.key, "model": _network_config("single", model_kw)["model"], "seed": seed,
+            "eps": block.class_weight_eps}
+    for name in dict.fromkeys(needed):
+        if name == "single":
+            key = hash_obj({**base, "steps": block.steps, "lr": block.lr})[:16]
+        else:
+            key = hash_obj({**base, "network": name, "init": result.keys["single"], "steps": block.warm_start_steps,
+                            "lr": block.finetune_lr, "comm_range": block.comm_range})[:16]
+        folder = out / "models" / f"{name}-seed{seed}"
+        loaded = load_if_key(folder, _build, STAGE, key)
+        if loaded is not None:
+            module, meta = loaded
+            result.networks[name], result.losses[name] = module, list(meta.get("losses", []))
+            log(f"ssc: {name} seed {seed} loaded from {folder} (key {key}: trained by an earlier run)")
+        else:
+            if name == "single":
+                module, losses = train_single(data, steps=block.steps, seed=seed, lr=block.lr, model_kw=model_kw,
+                                              weights=weights)
+            else:
+                module, losses = train_fused(name, data, result.networks["single"], steps=block.warm_start_steps,
+                                             seed=seed, lr=block.finetune_lr, weights=weights)
+            save_module(folder, module, _network_config(name, model_kw), key=key, seed=seed,
+                        losses=[round(v, 6) for v in losses])
+            result.networks[name], result.losses[name] = module, losses
+        result.keys[name] = key
+    return result
+
+
+# ---------------------------------------------------------------- prediction and scores
 
 
 @torch.no_grad()
-def _predict_own(trained: SscModel, clouds: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+def _predict_own(model: NoFusion, clouds: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
     """(L, X, Y, Z) labels and max-softmax confidences of each cloud in its own frame."""
-    det = trained.model.detector
+    det = model.detector
     mask = torch.ones(len(clouds), 1, dtype=torch.bool)
-    probs = trained.model(det.pillarize(list(clouds)), agent_mask=mask)["occ"].softmax(1)
+    probs = model(det.pillarize(list(clouds)), agent_mask=mask)["occ"].softmax(1)
     conf, labels = probs.max(1)
     return labels, conf
 
 
-def predict(trained: SscModel, sample: FusionSample, method: str) -> np.ndarray:
-    """(X, Y, Z) uint8 ego-frame map of ``sample`` by ``method`` (:data:`METHODS`)."""
-    if method not in METHODS:
-        raise TypError("tasks.ssc.predict", "method", f"one of {METHODS}", method)
-    clouds = sample.clouds[:1] if method == "no_fusion" else sample.clouds
-    labels, conf = _predict_own(trained, clouds)
-    if method == "no_fusion":
-        return labels[0].numpy().astype(np.uint8)
-    kw = dict(lower=SSC_GRID.lower, voxel=SSC_GRID.voxel.tolist())
-    warped = [warp_to_ego(labels[j], conf[j], sample.transforms[j], **kw) for j in range(len(clouds))]
-    merged, _ = merge_max_confidence(torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped]))
-    return merged.numpy().astype(np.uint8)
+@torch.no_grad()
+def predict(nets: SscNetworks, sample: FusionSample, method: str, *, bits: int | None = None) -> np.ndarray:
+    """(X, Y, Z) uint8 ego-frame map of ``sample`` by ``method`` (:data:`NETWORK`); ``bits``: AttFuse's
+    messages quantised to that many bits."""
+    if method not in NETWORK:
+        raise TypError("tasks.ssc.predict", "method", f"one of {list(NETWORK)}", method)
+    module = nets.for_method(method)
+    if method in ("none", "late"):
+        clouds = sample.clouds[:1] if method == "none" else sample.clouds
+        labels, conf = _predict_own(module, clouds)
+        if method == "none":
+            return labels[0].numpy().astype(np.uint8)
+        kw = dict(lower=SSC_GRID.lower, voxel=SSC_GRID.voxel.tolist())
+        warped = [warp_to_ego(labels[j], conf[j], sample.transforms[j], **kw) for j in range(len(clouds))]
+        merged, _ = merge_max_confidence(torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped]))
+        return merged.numpy().astype(np.uint8)
+    pillars, kw = _inputs(module, method, sample)
+    with compressed(module, bits):
+        logits = module(pillars, **kw)["occ"]
+    return logits[0].argmax(0).numpy().astype(np.uint8)
 
 
-def evaluate(trained: SscModel, ds: FusionDataset, method: str) -> dict:
-    """:func:`typ.metrics.ssc_iou` of ``method``'s ego maps against the ego's truth, pooled over ``ds``;
-    ``iou_per_class`` as a {class: IoU} dict, the confusion matrix dropped."""
-    preds, gts = [], []
+def confusions(nets: SscNetworks, ds: FusionDataset, method: str, *, bits: int | None = None) -> tuple[np.ndarray, dict]:
+    """Per-scenario (S, K, K) confusion matrices of ``method``'s ego maps against the ego's truth over
+    ``ds`` (rows truth, columns prediction), and what was scored (frames, mean message age)."""
+    conf = np.zeros((len(ds.scenarios), N_CLASSES, N_CLASSES), dtype=np.int64)
+    ages = []
     for i in range(len(ds)):
         sample = ds[i]
-        preds.append(predict(trained, sample, method))
-        gts.append(read_occupancy(occupancy_path(ds.scenarios[ds.index[i][0]][0], sample.agent_ids[0],
-                                                 sample.timestamp)))
-    r = ssc_iou(preds, gts, len(SSC_CLASSES))
-    return {"iou": r["iou"], "miou": r["miou"], "ciou": r["ciou"], "precision": r["precision"],
-            "recall": r["recall"], "iou_per_class": dict(zip(SSC_CLASSES[1:], r["iou_per_class"].tolist())),
-            "frames": len(gts)}
+        pred = predict(nets, sample, method, bits=bits)
+        conf[ds.index[i][0]] += ssc_confusion(pred, ego_map(ds, i, sample), N_CLASSES)
+        ages += [100.0 * float(d) for d in sample.time_delay[1:]]
+    return conf, {"frames": len(ds), "applied_delay_ms": float(np.mean(ages)) if ages else 0.0}
+
+
+def figure_of(scores: dict, name: str) -> float:
+    """One of :data:`FIGURES` from :func:`typ.metrics.ssc_scores`' dict."""
+    if name.startswith("iou_"):
+        return float(scores["iou_per_class"][SSC_CLASSES.index(name[4:]) - 1])
+    return float(scores[name])
+
+
+def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0) -> dict[str, dict[str, float]]:
+    """Each of :data:`FIGURES` with its bootstrap interval, from (seeds, scenarios, K, K) confusion
+    matrices: the mean over seeds of the figure pooled over scenarios, scenarios and seeds resampled."""
+    conf = np.asarray(conf)
+    if conf.ndim == 3:
+        conf = conf[None]
+
+    def stat_of(name: str):
+        def stat(c: np.ndarray, s: np.ndarray) -> float:
+            return float(np.mean([figure_of(ssc_scores(conf[k][c].sum(0)), name) for k in s]))
+        return stat
+
+    return {name: bootstrap(stat_of(name), conf.shape[1], conf.shape[0], n_boot=n_boot, seed=seed).to_dict()
+            for name in FIGURES}
+
+
+# ---------------------------------------------------------------- the stage
+
+
+def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
+        log_fn: Callable[[dict, int | None], None] | None = None) -> dict:
+    """Train every seed's networks, score Table I (perfect and noisy) and the robustness sweeps;
+    returns the results the report and the metrics are made of."""
+    sim = Path(root) / block.sim / block.domain
+    out = Path(root) / block.out
+    train_ds = ssc_dataset(sim / block.train_split, comm_range=block.comm_range)
+    test_ds = ssc_dataset(sim / block.test_split, comm_range=block.comm_range)
+    data = TrainingSet.read(train_ds)
+    weights = class_weights(data.class_counts(), eps=block.class_weight_eps)
+    noisy_ds = test_ds.with_options(position_std=block.noisy.position_std,
+                                    heading_std_deg=block.noisy.heading_std_deg,
+                                    delay_frames=block.noisy.delay_ms // 100, seed=block.seed)
+    trained = [train_seed(block, data, weights, seed, out, log) for seed in block.training_seeds]
+    for nets in trained:
+        if log_fn is not None:
+            for name, losses in nets.losses.items():
+                if losses:
+                    log_fn({f"loss_{name}_seed{nets.seed}_last": float(np.mean(losses[-20:]))}, None)
+    tables: dict[str, dict] = {}
+    for setting, ds in (("perfect", test_ds), ("noisy", noisy_ds)):
+        rows = {}
+        for method in block.methods:
+            per_seed = [confusions(nets, ds, method) for nets in trained]
+            conf = np.stack([c for c, _ in per_seed])
+            rows[method] = {"figures": intervals(conf, n_boot=block.bootstrap, seed=block.seed),
+                            "per_seed": {f: [round(figure_of(ssc_scores(c.sum(0)), f), 6) for c in conf]
+                                         for f in ("iou", "miou", "ciou")},
+                            **per_seed[0][1]}
+        tables[setting] = rows
+    robustness = robustness_curves(block, trained[0], test_ds)
+    return {"tables": tables, "robustness": robustness, "class_weights": dict(zip(SSC_CLASSES, weights.round(4).tolist())),
+            "train": {"samples": len(data.samples), "views": len(data.views), "scenarios": len(train_ds.scenarios)},
+            "test": {"samples": len(test_ds), "scenarios": len(test_ds.scenarios)},
+            "seeds": list(block.training_seeds), "losses": {f"{n}-seed{t.seed}": t.losses[n] for t in trained
+                                                            for n in t.losses},
+            "networks": trained}
+
+
+def robustness_curves(block: SscConfig, nets: SscNetworks, test_ds: FusionDataset) -> dict:
+    """mIoU / IoU of every method against pose noise, delay and (AttFuse) message bits, first seed, on
+    the test frames t >= the longest delay; each level a bootstrap interval over scenarios (no fusion:
+    the reference, unperturbed)."""
+    rob = block.robustness
+    methods = list(block.methods)
+    max_delay = max(rob.delay_ms, default=0) // 100
+    # every sweep on the same frames, t >= the longest delay (the delays need them; the zero level
+    # of each sweep is then one score, and the sweeps cost a quarter of tiny's test frames)
+    frames = test_ds.with_options(first_frame=max_delay)
+    sweeps = {"position_std": [dict(position_std=v) for v in rob.position_std],
+              "heading_std_deg": [dict(heading_std_deg=v) for v in rob.heading_std_deg],
+              "delay_ms": [dict(delay_frames=v // 100) for v in rob.delay_ms]}
+    levels = {"position_std": list(rob.position_std), "heading_std_deg": list(rob.heading_std_deg),
+              "delay_ms": list(rob.delay_ms)}
+    curves: dict[str, dict] = {m: {} for m in methods}
+    applied = {}
+    cache: dict[tuple, dict] = {}
+    for sweep, options in sweeps.items():
+        for method in methods:
+            cells = []
+            for opt in options:
+                ds = frames.with_options(seed=block.seed, **opt)
+                # no fusion never reads a cooperating agent, and a zero level is no perturbation
+                level = tuple(sorted((n, v) for n, v in opt.items() if v))
+                k = (method, level if method != "none" else ())
+                if k not in cache:
+                    conf, info = confusions(nets, ds, method)
+                    cache[k] = {**{f: v for f, v in intervals(conf, n_boot=block.bootstrap, seed=block.seed).items()
+                                   if f in ("iou", "miou", "ciou")}, **info}
+                cells.append(cache[k])
+            curves[method][sweep] = cells
+            if sweep == "delay_ms" and method != "none":
+                applied = [c["applied_delay_ms"] for c in cells]
+    bits = {}
+    if "attfuse" in methods:
+        for b in rob.quantization_bits:
+            conf, info = confusions(nets, frames, "attfuse", bits=b)
+            bits[b] = {**{f: v for f, v in intervals(conf, n_boot=block.bootstrap, seed=block.seed).items()
+                          if f in ("iou", "miou", "ciou")}, **info}
+    return {"levels": levels, "methods": curves, "applied_delay_ms": applied or list(map(float, rob.delay_ms)),
+            "quantization": {str(b): v for b, v in bits.items()}}
+
+
+def metrics_of(results: dict, seconds: float) -> dict:
+    """metrics/ssc.json: Table I's figures with intervals, the robustness curves' mIoU, the sizes."""
+    tables = {setting: {m: {**row["figures"], "per_seed": row["per_seed"], "frames": row["frames"]}
+                        for m, row in rows.items()} for setting, rows in results["tables"].items()}
+    perfect = results["tables"]["perfect"]
+    targets = {}
+    if "none" in perfect:
+        none = perfect["none"]["figures"]
+        targets["none_iou_ge_0.50"] = none["iou"]["value"] >= 0.50
+        targets["none_miou_ge_0.35"] = none["miou"]["value"] >= 0.35
+        for m, row in perfect.items():
+            if m != "none":
+                f = row["figures"]
+                targets[f"{m}_beats_none_iou"] = f["iou"]["low"] > none["iou"]["high"]
+                targets[f"{m}_beats_none_miou"] = f["miou"]["low"] > none["miou"]["high"]
+    rob = results["robustness"]
+    curves = {m: {sweep: [c["miou"]["value"] for c in cells] for sweep, cells in entry.items()}
+              for m, entry in rob["methods"].items()}
+    return {"tables": tables, "targets": targets, "robustness_miou": curves, "levels": rob["levels"],
+            "applied_delay_ms": rob["applied_delay_ms"],
+            "quantization_miou": {b: v["miou"]["value"] for b, v in rob["quantization"].items()},
+            "class_weights": results["class_weights"], "train": results["train"], "test": results["test"],
+            "seeds": results["seeds"], "seconds_total": round(seconds, 3)}
+

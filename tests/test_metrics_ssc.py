@@ -115,3 +115,16 @@ def test_bad_input_is_a_named_typerror(pred, gt, kw, field):
     with pytest.raises(TypError) as e:
         ssc_iou(pred, gt, n, **kw)
     assert e.value.field == field and e.value.where == "ssc_iou"
+
+
+def test_ssc_scores_of_a_pooled_matrix_equal_ssc_iou_and_a_bad_matrix_is_named():
+    from typ.metrics.ssc import ssc_scores
+
+    rng = np.random.default_rng(3)
+    pred, gt = rng.integers(0, 7, (2, 8, 8, 4)), rng.integers(0, 7, (2, 8, 8, 4))
+    whole = ssc_iou(pred, gt, 7)
+    split = ssc_scores(ssc_iou(pred[:1], gt[:1], 7)["confusion"] + ssc_iou(pred[1:], gt[1:], 7)["confusion"])
+    for key in ("iou", "miou", "ciou", "precision", "recall"):
+        assert split[key] == whole[key]
+    with pytest.raises(TypError, match="confusion"):
+        ssc_scores(np.zeros((7, 6)))

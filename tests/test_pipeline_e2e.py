@@ -43,6 +43,11 @@ SMALL = {
                "seeds": 1, "bootstrap": 20,
                "robustness": {"position_std": [0.0, 0.2], "heading_std_deg": [0.0, 0.4], "delay_ms": [0, 100],
                               "quantization_bits": [8]}},
+    "ssc": {"steps": 2, "warm_start_steps": 1, "bootstrap": 20,
+            "network": {"layer_nums": [1, 1, 1], "num_filters": [8, 8, 8], "num_upsample_filters": [8, 8, 8],
+                        "pillar_channels": 8, "head_hidden": 8},
+            "robustness": {"position_std": [0.0, 0.2], "heading_std_deg": [0.0], "delay_ms": [0, 100],
+                           "quantization_bits": [8]}},
     "evaluate": {"n_boot": 20, "max_pairs": 2, "gallery": 1},
     "ddpm": {"steps": 2, "checkpoint_every": 1, "eval_samples": 2, "bootstrap": 10,
              "unet": {"block_out_channels": [8, 16, 16]}, "features": {"steps": 2, "width": 4},
@@ -208,6 +213,28 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
             head, *rows = curve.read_text().splitlines()
             assert head.startswith("step,loss") and [int(r.split(",")[0]) for r in rows] == list(range(len(rows)))
     assert "reports/bench_sampling.csv" in rendered["data"]
+
+
+def test_ssc_stage_scores_every_method_and_saves_its_networks(project):
+    from tasks.artifacts import read_config, read_weights
+
+    proj, _, _ = project
+    ssc = json.loads((proj / "metrics" / "ssc.json").read_text())
+    methods = ["none", "early", "late", "attfuse"]
+    for setting in ("perfect", "noisy"):
+        assert sorted(ssc["tables"][setting]) == sorted(methods)
+        for method, row in ssc["tables"][setting].items():
+            for fig in ("iou", "miou", "ciou", "iou_road", "iou_car"):
+                assert 0.0 <= row[fig]["low"] <= row[fig]["high"] <= 1.0, (setting, method, fig)
+    assert ssc["tables"]["perfect"]["late"]["frames"] == 2 and ssc["test"] == {"samples": 2, "scenarios": 1}
+    assert ssc["applied_delay_ms"] == [0.0, 100.0] and set(ssc["robustness_miou"]) == set(methods)
+    for name in ("single", "early", "attfuse"):
+        folder = proj / "artifacts" / "ssc" / "models" / f"{name}-seed0"
+        assert read_config(folder, "ssc")["config"]["network"] == name and read_weights(folder, "ssc")
+    report = (proj / "reports" / "ssc.md").read_text()
+    assert "Table I analogue" in report and "| Intermediate (AttFuse) |" in report
+    for png in ("ssc_robustness.png", "ssc_gallery.png"):
+        assert (proj / "reports" / png).stat().st_size > 10_000, png
 
 
 def test_generated_dataset_is_opv2v_with_a_second_agent(project):

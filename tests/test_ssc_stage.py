@@ -1,38 +1,154 @@
-"""tasks/ssc.py on a small simulated scenario: maps written beside the clouds, training, no/late fusion."""
+"""The ssc stage's tasks on small simulated scenarios: maps beside the clouds, training of every
+network, prediction by every method, pooled scores and their intervals, resume, the report."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
+from tasks import ssc as S
+from tasks import ssc_report
 from tasks.simulate import ScenarioJob
-from tasks.ssc import evaluate, predict, sample_maps, ssc_dataset, train
+from typ.config import config_from_dict
+from typ.errors import TypError
+from typ.metrics.ssc import ssc_iou
 
-SMALL = dict(layer_nums=(1, 1, 1), num_filters=(8, 8, 8), num_upsample_filters=(8, 8, 8), pillar_channels=8,
-             head_hidden=8)
+NETWORK = {"layer_nums": [1, 1, 1], "num_filters": [8, 8, 8], "num_upsample_filters": [8, 8, 8],
+           "pillar_channels": 8, "head_hidden": 8, "max_pillars": 16384}
+
+
+def _block(tmp_path, **changes):
+    over = {"ssc": {"network": NETWORK, "steps": 6, "warm_start_steps": 2, "bootstrap": 20, "lr": 5e-3,
+                    "robustness": {"position_std": [0.0, 0.4], "heading_std_deg": [0.0], "delay_ms": [0, 100],
+                                   "quantization_bits": [4]},
+                    "noisy": {"position_std": 0.2, "heading_std_deg": 0.2, "delay_ms": 100}, **changes}}
+    block = config_from_dict(over).ssc
+    return dataclasses.replace(block, out=str(tmp_path / "artifacts" / "ssc"), reports=str(tmp_path / "reports"))
 
 
 @pytest.fixture(scope="module")
-def split(tmp_path_factory):
-    root = tmp_path_factory.mktemp("ssc") / "real_cav" / "train"
-    job = ScenarioJob(domain="real_cav", split="train", index=0, seed=11, n_agents=2, n_frames=2,
-                      azimuth_step_deg=1.0, comm_range=70.0, dt=0.1)
-    (root / job.name).mkdir(parents=True)
-    job.write(root / job.name)
-    return root, job
+def root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ssc")
+    for split, seed in (("train", 11), ("test", 12)):
+        job = ScenarioJob(domain="real_cav", split=split, index=0, seed=seed, n_agents=2, n_frames=2,
+                          azimuth_step_deg=1.0, comm_range=70.0, dt=0.1)
+        folder = root / "data" / "sim" / "real_cav" / split / job.name
+        folder.mkdir(parents=True)
+        job.write(folder)
+    return root
 
 
-def test_train_then_no_and_late_fusion(split):
-    root, _ = split
-    ds = ssc_dataset(root)
-    assert len(ds) == 2 and len(ds[0].agent_ids) == 2
-    assert len(sample_maps(ds, 0)) == 2
-    trained = train(ds, steps=20, seed=0, lr=5e-3, model_kw=SMALL)
-    assert np.isfinite(trained.losses).all() and np.mean(trained.losses[-4:]) < np.mean(trained.losses[:4])
-    for method in ("no_fusion", "late_fusion"):
-        r = evaluate(trained, ds, method)
-        assert r["frames"] == 2 and 0.0 <= r["miou"] <= 1.0 and np.isfinite(r["iou"])
+@pytest.fixture(scope="module")
+def trained(root, tmp_path_factory):
+    block = _block(tmp_path_factory.mktemp("out"))
+    data = S.TrainingSet.read(S.ssc_dataset(root / "data/sim/real_cav/train"))
+    weights = S.class_weights(data.class_counts(), eps=block.class_weight_eps)
+    return block, data, weights, S.train_seed(block, data, weights, 0, root / block.out, log=lambda m: None)
+
+
+def test_training_set_holds_every_agent_view_and_the_ego_maps(root):
+    ds = S.ssc_dataset(root / "data/sim/real_cav/train")
+    data = S.TrainingSet.read(ds)
+    assert len(ds) == 2 and len(data.samples) == 2 and len(data.views) == sum(len(s.clouds) for s in data.samples)
+    for (cloud, labels), (c2, m2) in zip(data.views[:2], zip(ds[0].clouds, S.sample_maps(ds, 0))):
+        assert cloud is c2 or np.array_equal(cloud, c2)
+        assert np.array_equal(labels, m2) and labels.shape == (128, 128, 20)
+    assert np.array_equal(data.ego_maps[0], S.ego_map(ds, 0, ds[0]))
+    counts = data.class_counts()
+    assert counts.sum() == len(data.views) * 128 * 128 * 20 and (counts[1:] > 0).sum() >= 3
+    assert S.TrainingSet.read(ds).key == data.key  # a content key, the same on a second read
+
+
+def test_every_network_trains_and_every_method_predicts(trained, root):
+    block, data, _, nets = trained
+    assert set(nets.networks) == {"single", "early", "attfuse"}
+    for name, losses in nets.losses.items():
+        steps = block.steps if name == "single" else block.warm_start_steps
+        assert len(losses) == steps and np.isfinite(losses).all(), name
+    assert np.mean(nets.losses["single"][-2:]) < np.mean(nets.losses["single"][:2])
+    test = S.ssc_dataset(root / "data/sim/real_cav/test")
+    for method in block.methods:
+        pred = S.predict(nets, test[0], method)
+        assert pred.shape == (128, 128, 20) and pred.dtype == np.uint8 and pred.max() < 7, method
     # late fusion of the ego alone is no fusion
-    solo = ssc_dataset(root, max_agents=1)
-    assert np.array_equal(predict(trained, solo[0], "late_fusion"), predict(trained, solo[0], "no_fusion"))
-    late = predict(trained, ds[0], "late_fusion")
-    assert late.shape == (128, 128, 20) and late.dtype == np.uint8 and late.max() < 7
+    solo = S.ssc_dataset(root / "data/sim/real_cav/test", max_agents=1)
+    assert np.array_equal(S.predict(nets, solo[0], "late"), S.predict(nets, solo[0], "none"))
+    with pytest.raises(TypError, match="method"):
+        S.predict(nets, test[0], "v2xvit")
+
+
+def test_scores_pool_the_frames_and_the_interval_brackets_them(trained, root):
+    _, _, _, nets = trained
+    test = S.ssc_dataset(root / "data/sim/real_cav/test")
+    conf, info = S.confusions(nets, test, "late")
+    assert conf.shape == (1, 7, 7) and info["frames"] == len(test) == 2
+    preds = [S.predict(nets, test[i], "late") for i in range(len(test))]
+    truth = [S.ego_map(test, i, test[i]) for i in range(len(test))]
+    reference = ssc_iou(preds, truth, 7)   # SemanticKITTI pooling, independently of the per-scene sums
+    assert conf.sum() == 2 * 128 * 128 * 20 and np.array_equal(conf[0], reference["confusion"])
+    figures = S.intervals(np.stack([conf, conf]), n_boot=20)   # two identical seeds: the same figure
+    assert figures["iou"]["value"] == pytest.approx(reference["iou"])
+    assert figures["miou"]["value"] == pytest.approx(reference["miou"])
+    assert figures["iou_car"]["value"] == pytest.approx(reference["iou_per_class"][1])
+    for cell in figures.values():
+        assert cell["low"] <= cell["value"] + 1e-12 and cell["value"] <= cell["high"] + 1e-12
+
+
+def test_a_rerun_loads_the_finished_networks_and_a_changed_budget_retrains(trained, root):
+    block, data, weights, nets = trained
+    said = []
+    again = S.train_seed(block, data, weights, 0, root / block.out, log=said.append)
+    assert len(said) == 3 and all("loaded" in s for s in said)
+    test = S.ssc_dataset(root / "data/sim/real_cav/test")
+    for method in block.methods:
+        assert np.array_equal(S.predict(again, test[0], method), S.predict(nets, test[0], method)), method
+    said.clear()
+    more = dataclasses.replace(block, warm_start_steps=block.warm_start_steps + 1)
+    S.train_seed(more, data, weights, 0, root / "other", log=said.append)
+    assert said == []                                           # nothing stored there: all trained
+    S.train_seed(more, data, weights, 0, root / block.out, log=said.append)
+    assert len(said) == 1 and "single" in said[0]               # the single-agent network's key is unchanged
+
+
+def test_the_stage_writes_table_i_the_curves_and_the_metrics(root, tmp_path):
+    block = _block(tmp_path)
+    results = S.run(block, root, log=lambda m: None)
+    assert set(results["tables"]) == {"perfect", "noisy"}
+    for setting, rows in results["tables"].items():
+        assert list(rows) == list(block.methods)
+        for method, row in rows.items():
+            for f in S.FIGURES:
+                cell = row["figures"][f]
+                assert 0.0 <= cell["low"] <= cell["high"] <= 1.0 and np.isfinite(cell["value"]), (setting, method, f)
+    assert results["tables"]["noisy"]["late"]["frames"] == 1 and results["tables"]["perfect"]["late"]["frames"] == 2
+    rob = results["robustness"]
+    assert rob["applied_delay_ms"] == [0.0, 100.0] and list(rob["quantization"]) == ["4"]
+    # no fusion reads no cooperating agent: flat along every sweep
+    flat = [c["miou"]["value"] for c in rob["methods"]["none"]["position_std"]]
+    assert flat[0] == flat[1]
+    metrics = S.metrics_of(results, 1.0)
+    assert set(metrics["targets"]) >= {"none_iou_ge_0.50", "late_beats_none_miou", "attfuse_beats_none_iou"}
+    test = S.ssc_dataset(root / "data/sim/real_cav/test")
+    preds = {m: S.predict(results["networks"][0], test[0], m) for m in block.methods}
+    paths = ssc_report.write_report(results, block, tmp_path / "reports", (S.ego_map(test, 0, test[0]), preds, "t"))
+    md = paths[0].read_text()
+    for method in block.methods:
+        assert md.count(f"| {S.DISPLAY[method]} |") == 2 + 3 + (method in ssc_report.PAPER)
+    assert all(p.stat().st_size > 0 for p in paths)
+
+
+def test_top_class_is_the_highest_occupied_voxel():
+    labels = np.zeros((2, 2, 4), np.uint8)
+    labels[0, 0, [0, 2]] = [1, 4]      # road under a building: the building
+    labels[1, 1, 3] = 6
+    assert ssc_report.top_class(labels).tolist() == [[4, 0], [0, 6]]
+
+
+def test_bad_ssc_params_are_named():
+    with pytest.raises(TypError, match="ssc.methods"):
+        config_from_dict({"ssc": {"methods": ["v2xvit"]}})
+    with pytest.raises(TypError, match="class_weight_eps"):
+        config_from_dict({"ssc": {"class_weight_eps": 1.0}})
+    with pytest.raises(TypError, match="ssc.noisy.delay_ms"):
+        config_from_dict({"ssc": {"noisy": {"delay_ms": 50}}})

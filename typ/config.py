@@ -687,6 +687,103 @@ class FusionConfig:
         return tuple(self.seed + k for k in range(self.seeds))
 
 
+#: the fusion methods semantic scene completion runs (``models.fusion.METHODS`` names; V2X-ViT's
+#: transformer has no occupancy head here): no and late fusion share one single-agent network
+SSC_METHODS = ("none", "early", "late", "attfuse")
+
+
+@dataclass(frozen=True)
+class SscNetworkConfig:
+    """The SSC network (``models.ssc.ssc_detector``): PointPillars on V2VSSC's grid, three backbone
+    levels (strides 2, 4, 8 over the 0.78125 m pillars), an occupancy head of ``head_hidden``."""
+
+    layer_nums: tuple[int, int, int]
+    num_filters: tuple[int, int, int]
+    num_upsample_filters: tuple[int, int, int]
+    pillar_channels: int
+    head_hidden: int
+    max_pillars: int
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "pillar_channels", "head_hidden", "max_pillars")
+        for key in ("layer_nums", "num_filters", "num_upsample_filters"):
+            if any(v < 1 for v in getattr(self, key)):
+                raise TypError(where, f"{name}.{key}", "3 counts >= 1", list(getattr(self, key)))
+
+
+@dataclass(frozen=True)
+class SscNoisyConfig:
+    """Table I's noisy setting: the cooperating agents' pose noise and message age (V2X-ViT's
+    0.2 m / 0.2 deg / 100 ms unless changed)."""
+
+    position_std: float
+    heading_std_deg: float
+    delay_ms: int
+
+    def check(self, where: str, name: str) -> None:
+        if self.position_std < 0 or self.heading_std_deg < 0:
+            raise TypError(where, f"{name}.position_std", "standard deviations >= 0",
+                           [self.position_std, self.heading_std_deg])
+        if self.delay_ms < 0 or self.delay_ms % 100:
+            raise TypError(where, f"{name}.delay_ms", "a multiple of 100 ms >= 0 (10 Hz frames)", self.delay_ms)
+
+
+@dataclass(frozen=True)
+class SscConfig:
+    """Stage ``ssc`` (V2VSSC §III–IV, Table I, Figs. 4–5): collaborative semantic scene completion on
+    ``domain``'s simulated scenarios and their semantic occupancy maps (``simulate.occupancy``).
+
+    The single-agent network trains ``steps`` steps of one agent view (every agent's own cloud
+    against its own map) with class-balanced cross-entropy (weights ``1 / ln(class_weight_eps +
+    share)``), Adam at ``lr`` with cosine decay; no and late fusion run it. Early fusion and
+    AttFuse start from it and train ``warm_start_steps`` on the ego's map at ``finetune_lr``.
+    Every network is trained ``seeds`` times (``seed``, ``seed + 1``, ...). Each method is scored
+    on the test split in the perfect setting and in ``noisy``; the ``robustness`` sweeps (pose
+    noise, delay, AttFuse's message bits) use the first seed's networks. Intervals: ``bootstrap``
+    replicates over test scenarios (and seeds)."""
+
+    methods: tuple[str, ...]
+    network: SscNetworkConfig
+    robustness: RobustnessConfig
+    noisy: SscNoisyConfig
+    comm_range: float
+    steps: int
+    warm_start_steps: int
+    lr: float
+    finetune_lr: float
+    class_weight_eps: float
+    seeds: int
+    bootstrap: int
+    seed: int
+    sim: str
+    domain: str
+    train_split: str
+    test_split: str
+    reports: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        self.network.check(where, f"{name}.network")
+        self.robustness.check(where, f"{name}.robustness")
+        self.noisy.check(where, f"{name}.noisy")
+        for i, method in enumerate(self.methods):
+            if method not in SSC_METHODS:
+                raise TypError(where, f"{name}.methods[{i}]", f"one of {list(SSC_METHODS)}", method)
+        if not self.methods or len(set(self.methods)) != len(self.methods):
+            raise TypError(where, f"{name}.methods", f"each of {'/'.join(SSC_METHODS)} at most once",
+                           list(self.methods))
+        _positive_fields(self, where, name, "comm_range", "steps", "warm_start_steps", "lr", "finetune_lr", "seeds",
+                         "bootstrap")
+        if not self.class_weight_eps > 1:
+            raise TypError(where, f"{name}.class_weight_eps", "a number > 1 (1 / ln(eps + share) stays finite)",
+                           self.class_weight_eps)
+
+    @property
+    def training_seeds(self) -> tuple[int, ...]:
+        """The seeds every network is trained with."""
+        return tuple(self.seed + k for k in range(self.seeds))
+
+
 Schedule = Literal["constant", "linear", "quadratic", "cosine", "sigmoid", "hyperbolic", "time_dependent", "ramp"]
 Sampler = Literal["ddim", "ddpm", "dpmsolver++", "unipc"]
 
@@ -940,6 +1037,7 @@ class Config:
     selftrain: SelftrainConfig
     generate: GenerateConfig
     fusion: FusionConfig
+    ssc: SscConfig
     evaluate: EvaluateConfig
     ddpm: DdpmConfig
     runtime: RuntimeConfig
@@ -948,7 +1046,7 @@ class Config:
 
     #: stage name -> attribute holding its block, in pipeline order
     STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2", "selftrain",
-                                                 "generate", "fusion", "ddpm", "evaluate")
+                                                 "generate", "fusion", "ssc", "ddpm", "evaluate")
 
     def block(self, stage: str):
         if stage not in self.STAGES:

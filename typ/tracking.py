@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 #: stages whose runs log system metrics (CPU, memory, disk, network; GPU with pynvml) every
 #: MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL seconds (MLflow's default: 10) from a thread; psutil
 #: is all it needs, and it logs to the run's own store, so it works offline
-TRAINING_STAGES = ("vqvae", "stage1", "adapt", "stage2", "selftrain", "fusion")
+TRAINING_STAGES = ("vqvae", "stage1", "adapt", "stage2", "selftrain", "fusion", "ssc")
 
 #: environment DVC sets for a stage command during `dvc exp run` -> the MLflow tag it becomes
 DVC_EXP_TAGS = {"DVC_EXP_NAME": "dvc.exp_name", "DVC_EXP_BASELINE_REV": "dvc.exp_baseline_rev"}

@@ -12,7 +12,7 @@ _EXPORTS = {
     "chamfer_distance": "truth", "occupancy_iou": "truth", "voxel_iou": "truth",
     "PRCurve": "detection", "ap_by_range": "detection", "pr_curves": "detection",
     "FrameMatches": "detection", "ap_of_frames": "detection", "frame_matches": "detection",
-    "SSC_CLASSES": "ssc", "SSC_CODE": "ssc", "ssc_confusion": "ssc", "ssc_iou": "ssc",
+    "SSC_CLASSES": "ssc", "SSC_CODE": "ssc", "ssc_confusion": "ssc", "ssc_iou": "ssc", "ssc_scores": "ssc",
 }
 __all__ = sorted(_EXPORTS)
 

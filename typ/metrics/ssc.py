@@ -87,7 +87,16 @@ def ssc_iou(pred, gt, n_classes: int, ignore: int = 255, mask=None) -> dict:
       ``n_classes`` is V2VSSC's 7, NaN otherwise.
     - ``confusion``: the pooled (n_classes, n_classes) int64 matrix, rows truth, columns prediction.
     """
-    conf = ssc_confusion(pred, gt, n_classes, ignore=ignore, mask=mask)
+    return ssc_scores(ssc_confusion(pred, gt, n_classes, ignore=ignore, mask=mask))
+
+
+def ssc_scores(conf: np.ndarray) -> dict:
+    """:func:`ssc_iou`'s figures from a pooled (n_classes, n_classes) confusion matrix (rows truth,
+    columns prediction), e.g. the sum of per-scene matrices a scene bootstrap draws."""
+    conf = np.asarray(conf)
+    n_classes = conf.shape[0]
+    if conf.ndim != 2 or conf.shape[1] != n_classes or n_classes < 2:
+        raise TypError(_WHERE, "confusion", "a square (n_classes, n_classes) matrix, n_classes >= 2", conf.shape)
     occ_t, occ_p = conf[1:, :].sum(), conf[:, 1:].sum()
     tp_geo = conf[1:, 1:].sum()
     fp_geo, fn_geo = occ_p - tp_geo, occ_t - tp_geo
