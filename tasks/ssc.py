@@ -216,9 +216,10 @@ def _build(config: dict) -> FusionModule:
 
 
 def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: int, out: Path,
-               log: Callable[[str], None] = print) -> SscNetworks:
-    """Every network the config's methods need, for ``seed``: loaded from ``out/models`` when a
-    network with the same key is there (a finished or earlier run), trained and saved otherwise."""
+               log: Callable[[str], None] = print, *, data_name: str = "oracle") -> SscNetworks:
+    """Every network the config's methods need, for ``seed``, trained on ``data`` (``data_name``:
+    oracle or generated): loaded from ``out/models/<data_name>`` when a network with the same key
+    is there (a finished or earlier run), trained and saved otherwise."""
     model_kw = model_kwargs(block)
     needed = ["single"] + [NETWORK[m] for m in block.methods if NETWORK[m] != "single"]
     result = SscNetworks(seed, {})
@@ -230,12 +231,12 @@ def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: i
         else:
             key = hash_obj({**base, "network": name, "init": result.keys["single"], "steps": block.warm_start_steps,
                             "lr": block.finetune_lr, "comm_range": block.comm_range})[:16]
-        folder = out / "models" / f"{name}-seed{seed}"
+        folder = out / "models" / data_name / f"{name}-seed{seed}"
         loaded = load_if_key(folder, _build, STAGE, key)
         if loaded is not None:
             module, meta = loaded
             result.networks[name], result.losses[name] = module, list(meta.get("losses", []))
-            log(f"ssc: {name} seed {seed} loaded from {folder} (key {key}: trained by an earlier run)")
+            log(f"ssc: {data_name} {name} seed {seed} loaded from {folder} (key {key}: trained by an earlier run)")
         else:
             if name == "single":
                 module, losses = train_single(data, steps=block.steps, seed=seed, lr=block.lr, model_kw=model_kw,
@@ -321,46 +322,105 @@ def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0) -> dict[str, dict
             for name in FIGURES}
 
 
+def ratio_interval(num: np.ndarray, den: np.ndarray, figure: str, *, n_boot: int, seed: int = 0) -> dict[str, float]:
+    """``figure`` of ``num``'s networks over ``figure`` of ``den``'s (each the mean over seeds of the
+    figure pooled over scenarios), from (seeds, scenarios, K, K) confusion matrices of the same test
+    scenarios: scenarios are resampled together (paired), seeds independently for each side."""
+    num, den = np.asarray(num), np.asarray(den)
+    if num.shape[1:] != den.shape[1:]:
+        raise TypError("tasks.ssc.ratio_interval", "den", f"matrices of the same scenarios as num {num.shape[1:]}",
+                       den.shape[1:])
+    n_seeds = max(len(num), len(den))
+
+    def stat(c: np.ndarray, s: np.ndarray) -> float:
+        a = np.mean([figure_of(ssc_scores(num[k % len(num)][c].sum(0)), figure) for k in s])
+        b = np.mean([figure_of(ssc_scores(den[k % len(den)][c].sum(0)), figure) for k in s])
+        return float(a / b) if b > 0 else float("nan")
+
+    return bootstrap(stat, num.shape[1], n_seeds, n_boot=n_boot, seed=seed).to_dict()
+
+
 # ---------------------------------------------------------------- the stage
+
+
+def _scenarios_in(folder: Path) -> str | None:
+    """Why ``folder`` holds no scenarios to train on (None: it does)."""
+    from typ.formats.opv2v import list_scenarios
+
+    if not folder.is_dir():
+        return f"{folder} does not exist (the generate stage writes it)"
+    if not list_scenarios(folder):
+        return f"{folder} holds no scenario"
+    return None
 
 
 def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
         log_fn: Callable[[dict, int | None], None] | None = None) -> dict:
-    """Train every seed's networks, score Table I (perfect and noisy) and the robustness sweeps;
-    returns the results the report and the metrics are made of."""
+    """Train every seed's networks, score Table I (perfect and noisy), the networks trained on
+    generated cooperators against the oracle ones, and the robustness sweeps; returns the results
+    the report and the metrics are made of."""
     sim = Path(root) / block.sim / block.domain
     out = Path(root) / block.out
     train_ds = ssc_dataset(sim / block.train_split, comm_range=block.comm_range)
     test_ds = ssc_dataset(sim / block.test_split, comm_range=block.comm_range)
     data = TrainingSet.read(train_ds)
     weights = class_weights(data.class_counts(), eps=block.class_weight_eps)
+    skipped: dict[str, str] = {}
     noisy_ds = test_ds.with_options(position_std=block.noisy.position_std,
                                     heading_std_deg=block.noisy.heading_std_deg,
                                     delay_frames=block.noisy.delay_ms // 100, seed=block.seed)
     trained = [train_seed(block, data, weights, seed, out, log) for seed in block.training_seeds]
+    losses = {f"oracle/{n}-seed{t.seed}": t.losses[n] for t in trained for n in t.losses}
     for nets in trained:
         if log_fn is not None:
-            for name, losses in nets.losses.items():
-                if losses:
-                    log_fn({f"loss_{name}_seed{nets.seed}_last": float(np.mean(losses[-20:]))}, None)
+            for name, curve in nets.losses.items():
+                if curve:
+                    log_fn({f"loss_{name}_seed{nets.seed}_last": float(np.mean(curve[-20:]))}, None)
     tables: dict[str, dict] = {}
+    perfect: dict[str, np.ndarray] = {}     # the oracle networks' confusions, for the generated ratios
     for setting, ds in (("perfect", test_ds), ("noisy", noisy_ds)):
         rows = {}
         for method in block.methods:
             per_seed = [confusions(nets, ds, method) for nets in trained]
             conf = np.stack([c for c, _ in per_seed])
+            if setting == "perfect":
+                perfect[method] = conf
             rows[method] = {"figures": intervals(conf, n_boot=block.bootstrap, seed=block.seed),
                             "per_seed": {f: [round(figure_of(ssc_scores(c.sum(0)), f), 6) for c in conf]
                                          for f in ("iou", "miou", "ciou")},
                             **per_seed[0][1]}
         tables[setting] = rows
+    if "generated" in block.data:   # TYP Table 1 for SSC: the cooperating clouds of training generated
+        gen_root = Path(root) / block.generated / block.domain / block.train_split
+        reason = _scenarios_in(gen_root)
+        if reason is None:
+            gen = TrainingSet.read(ssc_dataset(sim / block.train_split, comm_range=block.comm_range, cav_root=gen_root))
+            gen_trained = [train_seed(block, gen, weights, seed, out, log, data_name="generated")
+                           for seed in block.training_seeds]
+            losses.update({f"generated/{n}-seed{t.seed}": t.losses[n] for t in gen_trained for n in t.losses})
+            rows = {}
+            for method in block.methods:
+                if method == "none":      # the ego's cloud is never generated: no fusion is the oracle row
+                    continue
+                conf = np.stack([confusions(nets, test_ds, method)[0] for nets in gen_trained])
+                oracle = perfect[method]
+                boot = dict(n_boot=block.bootstrap, seed=block.seed)
+                rows[method] = {"figures": intervals(conf, **boot),
+                                "ratio_miou": ratio_interval(conf, oracle, "miou", **boot),
+                                "ratio_iou": ratio_interval(conf, oracle, "iou", **boot),
+                                "per_seed": {f: [round(figure_of(ssc_scores(c.sum(0)), f), 6) for c in conf]
+                                             for f in ("iou", "miou", "ciou")},
+                                "frames": len(test_ds)}
+            tables["generated"] = rows
+        else:
+            skipped["generated"] = reason
+            log(f"ssc: the generated rows are skipped: {reason}")
     robustness = robustness_curves(block, trained[0], test_ds)
-    return {"tables": tables, "robustness": robustness, "class_weights": dict(zip(SSC_CLASSES, weights.round(4).tolist())),
+    return {"tables": tables, "robustness": robustness, "skipped": skipped,
+            "class_weights": dict(zip(SSC_CLASSES, weights.round(4).tolist())),
             "train": {"samples": len(data.samples), "views": len(data.views), "scenarios": len(train_ds.scenarios)},
             "test": {"samples": len(test_ds), "scenarios": len(test_ds.scenarios)},
-            "seeds": list(block.training_seeds), "losses": {f"{n}-seed{t.seed}": t.losses[n] for t in trained
-                                                            for n in t.losses},
-            "networks": trained}
+            "seeds": list(block.training_seeds), "losses": losses, "networks": trained}
 
 
 def robustness_curves(block: SscConfig, nets: SscNetworks, test_ds: FusionDataset) -> dict:
@@ -422,6 +482,9 @@ def metrics_of(results: dict, seconds: float) -> dict:
                 f = row["figures"]
                 targets[f"{m}_beats_none_iou"] = f["iou"]["low"] > none["iou"]["high"]
                 targets[f"{m}_beats_none_miou"] = f["miou"]["low"] > none["miou"]["high"]
+    for m, row in results["tables"].get("generated", {}).items():
+        targets[f"{m}_generated_ge_0.85_oracle_miou"] = row["ratio_miou"]["value"] >= 0.85
+        tables["generated"][m].update(ratio_miou=row["ratio_miou"], ratio_iou=row["ratio_iou"])
     rob = results["robustness"]
     curves = {m: {sweep: [c["miou"]["value"] for c in cells] for sweep, cells in entry.items()}
               for m, entry in rob["methods"].items()}
@@ -429,5 +492,6 @@ def metrics_of(results: dict, seconds: float) -> dict:
             "applied_delay_ms": rob["applied_delay_ms"],
             "quantization_miou": {b: v["miou"]["value"] for b, v in rob["quantization"].items()},
             "class_weights": results["class_weights"], "train": results["train"], "test": results["test"],
+            "skipped": results["skipped"],
             "seeds": results["seeds"], "seconds_total": round(seconds, 3)}
 

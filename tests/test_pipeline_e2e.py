@@ -228,9 +228,13 @@ def test_ssc_stage_scores_every_method_and_saves_its_networks(project):
                 assert 0.0 <= row[fig]["low"] <= row[fig]["high"] <= 1.0, (setting, method, fig)
     assert ssc["tables"]["perfect"]["late"]["frames"] == 2 and ssc["test"] == {"samples": 2, "scenarios": 1}
     assert ssc["applied_delay_ms"] == [0.0, 100.0] and set(ssc["robustness_miou"]) == set(methods)
-    for name in ("single", "early", "attfuse"):
-        folder = proj / "artifacts" / "ssc" / "models" / f"{name}-seed0"
-        assert read_config(folder, "ssc")["config"]["network"] == name and read_weights(folder, "ssc")
+    for data in ("oracle", "generated"):
+        for name in ("single", "early", "attfuse"):
+            folder = proj / "artifacts" / "ssc" / "models" / data / f"{name}-seed0"
+            assert read_config(folder, "ssc")["config"]["network"] == name and read_weights(folder, "ssc")
+    assert sorted(ssc["tables"]["generated"]) == ["attfuse", "early", "late"] and ssc["skipped"] == {}
+    for row in ssc["tables"]["generated"].values():
+        assert row["ratio_miou"]["low"] <= row["ratio_miou"]["value"] <= row["ratio_miou"]["high"]
     report = (proj / "reports" / "ssc.md").read_text()
     assert "Table I analogue" in report and "| Intermediate (AttFuse) |" in report
     for png in ("ssc_robustness.png", "ssc_gallery.png"):

@@ -111,10 +111,24 @@ def test_a_rerun_loads_the_finished_networks_and_a_changed_budget_retrains(train
     assert len(said) == 1 and "single" in said[0]               # the single-agent network's key is unchanged
 
 
+def test_the_ratio_interval_pairs_the_scenarios_and_is_one_for_the_same_networks():
+    rng = np.random.default_rng(0)
+    conf = rng.integers(0, 50, (2, 5, 7, 7))
+    same = S.ratio_interval(conf, conf, "miou", n_boot=50)
+    assert same == {"value": 1.0, "low": 1.0, "high": 1.0}
+    half = conf.copy()
+    half[:, :, 1:, 1:] = 0            # nothing right but empty space: every class IoU 0
+    assert S.ratio_interval(half, conf, "miou", n_boot=50)["high"] == 0.0
+    with pytest.raises(TypError, match="den"):
+        S.ratio_interval(conf, conf[:, :4], "miou", n_boot=10)
+
+
 def test_the_stage_writes_table_i_the_curves_and_the_metrics(root, tmp_path):
     block = _block(tmp_path)
-    results = S.run(block, root, log=lambda m: None)
-    assert set(results["tables"]) == {"perfect", "noisy"}
+    said = []
+    results = S.run(block, root, log=said.append)
+    assert set(results["tables"]) == {"perfect", "noisy"}      # no generated data under this root
+    assert "does not exist" in results["skipped"]["generated"] and any("generated rows" in m for m in said)
     for setting, rows in results["tables"].items():
         assert list(rows) == list(block.methods)
         for method, row in rows.items():
@@ -152,3 +166,28 @@ def test_bad_ssc_params_are_named():
         config_from_dict({"ssc": {"class_weight_eps": 1.0}})
     with pytest.raises(TypError, match="ssc.noisy.delay_ms"):
         config_from_dict({"ssc": {"noisy": {"delay_ms": 50}}})
+
+
+def test_generated_cooperators_identical_to_the_true_ones_give_a_ratio_of_one(root, tmp_path):
+    """With "generated" clouds that are byte copies of the true ones, the generated networks are the
+    oracle ones retrained from the same seed: the same scores, a ratio of exactly 1."""
+    import shutil
+
+    proj = tmp_path / "proj"
+    shutil.copytree(root / "data" / "sim", proj / "data" / "sim")
+    shutil.copytree(root / "data" / "sim" / "real_cav" / "train", proj / "data" / "generated" / "real_cav" / "train")
+    block = _block(tmp_path, robustness={"position_std": [0.0], "heading_std_deg": [0.0], "delay_ms": [0],
+                                         "quantization_bits": []})
+    logged = []
+    results = S.run(block, proj, log=lambda m: None, log_fn=lambda values, step: logged.append(values))
+    assert sorted(k for d in logged for k in d) == [f"loss_{n}_seed0_last" for n in ("attfuse", "early", "single")]
+    gen = results["tables"]["generated"]
+    assert list(gen) == ["early", "late", "attfuse"] and results["skipped"] == {}
+    for method, row in gen.items():
+        assert row["ratio_miou"]["value"] == 1.0 and row["ratio_iou"]["value"] == 1.0, method
+        assert row["figures"]["miou"] == results["tables"]["perfect"][method]["figures"]["miou"], method
+    assert (proj / block.out / "models" / "generated" / "attfuse-seed0" / "model.safetensors").is_file()
+    metrics = S.metrics_of(results, 1.0)
+    assert metrics["targets"]["late_generated_ge_0.85_oracle_miou"] is True
+    md = ssc_report.report_markdown(results, block)
+    assert "TYP Table 1 for SSC" in md and "| Late Fusion |" in md

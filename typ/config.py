@@ -740,9 +740,14 @@ class SscConfig:
     Every network is trained ``seeds`` times (``seed``, ``seed + 1``, ...). Each method is scored
     on the test split in the perfect setting and in ``noisy``; the ``robustness`` sweeps (pose
     noise, delay, AttFuse's message bits) use the first seed's networks. Intervals: ``bootstrap``
-    replicates over test scenarios (and seeds)."""
+    replicates over test scenarios (and seeds).
+
+    ``data``: what the networks train on, each scored on the true test split: ``oracle`` (every
+    agent's true cloud) and ``generated`` (the cooperating agents' clouds TYP generated for the
+    same frames under ``generated``, the ego's true; TYP Table 1 for SSC). Maps are true in both."""
 
     methods: tuple[str, ...]
+    data: tuple[Literal["oracle", "generated"], ...]
     network: SscNetworkConfig
     robustness: RobustnessConfig
     noisy: SscNoisyConfig
@@ -756,6 +761,7 @@ class SscConfig:
     bootstrap: int
     seed: int
     sim: str
+    generated: str
     domain: str
     train_split: str
     test_split: str
@@ -764,6 +770,9 @@ class SscConfig:
 
     def check(self, where: str, name: str) -> None:
         self.network.check(where, f"{name}.network")
+        if not self.data or self.data[0] != "oracle" or len(set(self.data)) != len(self.data):
+            raise TypError(where, f"{name}.data", "oracle first (Table I, the robustness sweeps), then generated "
+                           "or nothing", list(self.data))
         self.robustness.check(where, f"{name}.robustness")
         self.noisy.check(where, f"{name}.noisy")
         for i, method in enumerate(self.methods):
