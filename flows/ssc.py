@@ -25,15 +25,7 @@ def ssc_flow(params: str = "params.yaml", root: str = ".") -> dict:
     with stage_run(STAGE, cfg, root=root_path) as run:
         with Timer() as timer:
             results = plain_task(stage.run, "train-and-score")(block, root_path, log_fn=run.metrics)
-            first = results["networks"][0]
-            test = stage.ssc_dataset(root_path / block.sim / block.domain / block.test_split,
-                                     comm_range=block.comm_range)
-            sample = test[0]
-            preds = {m: stage.predict(first, sample, m) for m in block.methods}
-            gallery = (stage.ego_map(test, 0, sample), preds,
-                       f"{sample.scenario} frame {sample.timestamp}, ego {sample.agent_ids[0]}, "
-                       f"{len(sample.agent_ids) - 1} cooperating agent(s); seed {first.seed}")
-            paths = ssc_report.write_report(results, block, root_path / block.reports, gallery)
+            paths = ssc_report.write_report(results, block, root_path / block.reports, results["gallery"])
         metrics = stage.metrics_of(results, timer.seconds)
         write_json(out / "results.json", metrics)
         write_json(out / "losses.json", results["losses"])

@@ -41,7 +41,7 @@ import torch
 
 from models.fusion import METHODS, SINGLE_AGENT
 from tasks.fusion_batch import Inputs
-from tasks.fusion_data import FusionDataset
+from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
 from typ import distributed
 from typ.config import FusionConfig
@@ -68,15 +68,6 @@ class Roots:
         return cls(sim / cfg.real_domain / cfg.train_split, sim / cfg.real_domain / cfg.test_split,
                    gen / cfg.real_domain / cfg.train_split, sim / cfg.source_domain / cfg.source_split,
                    gen / cfg.colwaymo_domain / cfg.colwaymo_split)
-
-
-def unavailable(folder: Path) -> str | None:
-    """Why ``folder`` holds no scenarios to use (None: it does)."""
-    if not folder.is_dir():
-        return f"{folder} does not exist (the generate stage writes it)"
-    if not list_scenarios(folder):
-        return f"{folder} holds no scenario"
-    return None
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,15 @@ EGO_FOOTPRINT = (1.95, 1.1)
 POSE_TOLERANCE = 1e-3
 
 
+def unavailable(folder: Path) -> str | None:
+    """Why ``folder`` holds no scenarios to use (None: it does)."""
+    if not folder.is_dir():
+        return f"{folder} does not exist (the generate stage writes it)"
+    if not list_scenarios(folder):
+        return f"{folder} holds no scenario"
+    return None
+
+
 @dataclass(frozen=True)
 class FusionSample:
     """What the ego has at one timestamp: its view, the messages in range, the ground truth.

@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from models.fusion import FusionModule, NoFusion, build, compressed, merge_agent_points
 from models.ssc import SSC_LIDAR_RANGE, class_weights, merge_max_confidence, ssc_detector, warp_to_ego
 from tasks.artifacts import load_if_key, save_module
-from tasks.fusion_data import FusionDataset, FusionSample
+from tasks.fusion_data import FusionDataset, FusionSample, unavailable
 from tasks.training import seed_everything
 from typ.config import SSC_METHODS, SscConfig
 from typ.errors import TypError
@@ -306,9 +306,11 @@ def figure_of(scores: dict, name: str) -> float:
     return float(scores[name])
 
 
-def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0) -> dict[str, dict[str, float]]:
-    """Each of :data:`FIGURES` with its bootstrap interval, from (seeds, scenarios, K, K) confusion
-    matrices: the mean over seeds of the figure pooled over scenarios, scenarios and seeds resampled."""
+def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0,
+              figures: Sequence[str] = FIGURES) -> dict[str, dict[str, float]]:
+    """Each of ``figures`` (:data:`FIGURES`) with its bootstrap interval, from (seeds, scenarios, K, K)
+    confusion matrices: the mean over seeds of the figure pooled over scenarios, scenarios and seeds
+    resampled."""
     conf = np.asarray(conf)
     if conf.ndim == 3:
         conf = conf[None]
@@ -319,13 +321,25 @@ def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0) -> dict[str, dict
         return stat
 
     return {name: bootstrap(stat_of(name), conf.shape[1], conf.shape[0], n_boot=n_boot, seed=seed).to_dict()
-            for name in FIGURES}
+            for name in figures}
+
+
+#: the figures given per seed and at each robustness level
+HEADLINE_FIGURES = ("iou", "miou", "ciou")
+
+
+def scored(conf: np.ndarray, *, n_boot: int, seed: int) -> dict:
+    """A table row of (seeds, scenarios, K, K) confusions: every figure's interval, and IoU, mIoU and
+    cIoU of each seed."""
+    return {"figures": intervals(conf, n_boot=n_boot, seed=seed),
+            "per_seed": {f: [round(figure_of(ssc_scores(c.sum(0)), f), 6) for c in conf] for f in HEADLINE_FIGURES}}
 
 
 def ratio_interval(num: np.ndarray, den: np.ndarray, figure: str, *, n_boot: int, seed: int = 0) -> dict[str, float]:
     """``figure`` of ``num``'s networks over ``figure`` of ``den``'s (each the mean over seeds of the
     figure pooled over scenarios), from (seeds, scenarios, K, K) confusion matrices of the same test
-    scenarios: scenarios are resampled together (paired), seeds independently for each side."""
+    scenarios and training seeds: both are resampled together (paired), seed k of each side drawn
+    as one (modulo its seed count)."""
     num, den = np.asarray(num), np.asarray(den)
     if num.shape[1:] != den.shape[1:]:
         raise TypError("tasks.ssc.ratio_interval", "den", f"matrices of the same scenarios as num {num.shape[1:]}",
@@ -341,17 +355,6 @@ def ratio_interval(num: np.ndarray, den: np.ndarray, figure: str, *, n_boot: int
 
 
 # ---------------------------------------------------------------- the stage
-
-
-def _scenarios_in(folder: Path) -> str | None:
-    """Why ``folder`` holds no scenarios to train on (None: it does)."""
-    from typ.formats.opv2v import list_scenarios
-
-    if not folder.is_dir():
-        return f"{folder} does not exist (the generate stage writes it)"
-    if not list_scenarios(folder):
-        return f"{folder} holds no scenario"
-    return None
 
 
 def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
@@ -385,14 +388,11 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
             conf = np.stack([c for c, _ in per_seed])
             if setting == "perfect":
                 perfect[method] = conf
-            rows[method] = {"figures": intervals(conf, n_boot=block.bootstrap, seed=block.seed),
-                            "per_seed": {f: [round(figure_of(ssc_scores(c.sum(0)), f), 6) for c in conf]
-                                         for f in ("iou", "miou", "ciou")},
-                            **per_seed[0][1]}
+            rows[method] = {**scored(conf, n_boot=block.bootstrap, seed=block.seed), **per_seed[0][1]}
         tables[setting] = rows
     if "generated" in block.data:   # TYP Table 1 for SSC: the cooperating clouds of training generated
         gen_root = Path(root) / block.generated / block.domain / block.train_split
-        reason = _scenarios_in(gen_root)
+        reason = unavailable(gen_root)
         if reason is None:
             gen = TrainingSet.read(ssc_dataset(sim / block.train_split, comm_range=block.comm_range, cav_root=gen_root))
             gen_trained = [train_seed(block, gen, weights, seed, out, log, data_name="generated")
@@ -405,18 +405,18 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
                 conf = np.stack([confusions(nets, test_ds, method)[0] for nets in gen_trained])
                 oracle = perfect[method]
                 boot = dict(n_boot=block.bootstrap, seed=block.seed)
-                rows[method] = {"figures": intervals(conf, **boot),
-                                "ratio_miou": ratio_interval(conf, oracle, "miou", **boot),
-                                "ratio_iou": ratio_interval(conf, oracle, "iou", **boot),
-                                "per_seed": {f: [round(figure_of(ssc_scores(c.sum(0)), f), 6) for c in conf]
-                                             for f in ("iou", "miou", "ciou")},
-                                "frames": len(test_ds)}
+                rows[method] = {**scored(conf, **boot), "ratio_miou": ratio_interval(conf, oracle, "miou", **boot),
+                                "ratio_iou": ratio_interval(conf, oracle, "iou", **boot), "frames": len(test_ds)}
             tables["generated"] = rows
         else:
             skipped["generated"] = reason
             log(f"ssc: the generated rows are skipped: {reason}")
     robustness = robustness_curves(block, trained[0], test_ds)
-    return {"tables": tables, "robustness": robustness, "skipped": skipped,
+    sample = test_ds[0]     # the gallery: the first test frame by every method, first seed
+    gallery = (ego_map(test_ds, 0, sample), {m: predict(trained[0], sample, m) for m in block.methods},
+               f"{sample.scenario} frame {sample.timestamp}, ego {sample.agent_ids[0]}, "
+               f"{len(sample.agent_ids) - 1} cooperating agent(s); seed {trained[0].seed}")
+    return {"tables": tables, "robustness": robustness, "skipped": skipped, "gallery": gallery,
             "class_weights": dict(zip(SSC_CLASSES, weights.round(4).tolist())),
             "train": {"samples": len(data.samples), "views": len(data.views), "scenarios": len(train_ds.scenarios)},
             "test": {"samples": len(test_ds), "scenarios": len(test_ds.scenarios)},
@@ -451,8 +451,8 @@ def robustness_curves(block: SscConfig, nets: SscNetworks, test_ds: FusionDatase
                 k = (method, level if method != "none" else ())
                 if k not in cache:
                     conf, info = confusions(nets, ds, method)
-                    cache[k] = {**{f: v for f, v in intervals(conf, n_boot=block.bootstrap, seed=block.seed).items()
-                                   if f in ("iou", "miou", "ciou")}, **info}
+                    cache[k] = {**intervals(conf, n_boot=block.bootstrap, seed=block.seed, figures=HEADLINE_FIGURES),
+                                **info}
                 cells.append(cache[k])
             curves[method][sweep] = cells
             if sweep == "delay_ms" and method != "none":
@@ -461,8 +461,7 @@ def robustness_curves(block: SscConfig, nets: SscNetworks, test_ds: FusionDatase
     if "attfuse" in methods:
         for b in rob.quantization_bits:
             conf, info = confusions(nets, frames, "attfuse", bits=b)
-            bits[b] = {**{f: v for f, v in intervals(conf, n_boot=block.bootstrap, seed=block.seed).items()
-                          if f in ("iou", "miou", "ciou")}, **info}
+            bits[b] = {**intervals(conf, n_boot=block.bootstrap, seed=block.seed, figures=HEADLINE_FIGURES), **info}
     return {"levels": levels, "methods": curves, "applied_delay_ms": applied or list(map(float, rob.delay_ms)),
             "quantization": {str(b): v for b, v in bits.items()}}
 

@@ -660,12 +660,7 @@ class FusionConfig:
         self.v2xvit.check(where, f"{name}.v2xvit")
         self.robustness.check(where, f"{name}.robustness")
         self.augment.check(where, f"{name}.augment")
-        for i, method in enumerate(self.methods):
-            if method not in FUSION_METHODS:
-                raise TypError(where, f"{name}.methods[{i}]", f"one of {list(FUSION_METHODS)}", method)
-        if not self.methods or len(set(self.methods)) != len(self.methods):
-            raise TypError(where, f"{name}.methods", f"each of {'/'.join(FUSION_METHODS)} at most once",
-                           list(self.methods))
+        _check_methods(where, f"{name}.methods", self.methods, FUSION_METHODS)
         _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
                          "pretrain_steps", "finetune_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
                          "seeds", "generated_extent", "bootstrap")
@@ -775,12 +770,7 @@ class SscConfig:
                            "or nothing", list(self.data))
         self.robustness.check(where, f"{name}.robustness")
         self.noisy.check(where, f"{name}.noisy")
-        for i, method in enumerate(self.methods):
-            if method not in SSC_METHODS:
-                raise TypError(where, f"{name}.methods[{i}]", f"one of {list(SSC_METHODS)}", method)
-        if not self.methods or len(set(self.methods)) != len(self.methods):
-            raise TypError(where, f"{name}.methods", f"each of {'/'.join(SSC_METHODS)} at most once",
-                           list(self.methods))
+        _check_methods(where, f"{name}.methods", self.methods, SSC_METHODS)
         _positive_fields(self, where, name, "comm_range", "steps", "warm_start_steps", "lr", "finetune_lr", "seeds",
                          "bootstrap")
         if not self.class_weight_eps > 1:
@@ -1066,6 +1056,15 @@ class Config:
 def _positive(where: str, name: str, value) -> None:
     if not value > 0:
         raise TypError(where, name, "a value > 0", value)
+
+
+def _check_methods(where: str, name: str, methods, allowed: tuple[str, ...]) -> None:
+    """``methods``: at least one, each of ``allowed`` and none twice; the error names the entry."""
+    for i, method in enumerate(methods):
+        if method not in allowed:
+            raise TypError(where, f"{name}[{i}]", f"one of {list(allowed)}", method)
+    if not methods or len(set(methods)) != len(methods):
+        raise TypError(where, name, f"each of {'/'.join(allowed)} at most once", list(methods))
 
 
 def _positive_fields(block, where: str, name: str, *keys: str) -> None:
