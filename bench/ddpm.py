@@ -15,9 +15,9 @@ own under ``--root`` whose params.yaml is the tiny profile with :data:`SWEEP` ov
   also with DDIM-50 and DPM-Solver++ 20 / 10; TYP's stage 1 beside them. (The BEV image is in
   the stage's tiny run; here it would cost another quarter hour.)
 - ``--quick``: 2 configurations x 1 seed at a few steps (checks the wiring in minutes).
-- ``--medium``: J against A on the range image, 1 seed each, 1000 training steps, DDPM-1000 and
-  DPM-Solver++ 20, on the tiny pipeline's data (28 min wall at one thread on a shared 2-core
-  machine: feature nets ~8 min, each model ~8 min, each DDPM-1000 set ~1.5 min).
+- ``--medium``: the issue's targets on the range image at a CPU budget (:data:`MEDIUM`: J and A
+  over 3 seeds, B, F and E* over 1, 2000 training steps, 16 samples per set), on the tiny
+  pipeline's data (2-core Intel Xeon, 2 threads: each model ~4 min, each DDPM-1000 set ~1 min).
 
 Every trained model and generated set is cached under ``--root`` (keys: config, data, code),
 so an interrupted sweep resumes where it stopped. Writes <out>/bench_ddpm.md (the stage's
@@ -83,12 +83,18 @@ QUICK = {
     "steps": 20, "eval_samples": 3, "bootstrap": 50, "features": {"steps": 10},
     "latent": {"samplers": [["dpmsolver++", 10]], "views": 3},
 }
-#: J against A on the range image at a training budget where the models are no longer flat
+#: The Table II targets at a CPU budget where the range models leave the noise row: J and A over
+#: 3 seeds (DDPM-1000 and DPM-Solver++ 20), B, and F with E* (DDPM-1000 / DDPM-800 of the same
+#: model) over 1, 2000 training steps each, 16 samples per set (a set's JSD depends on its size:
+#: 4 real scans are no closer to the held-out ones than 4 noise images), on the tiny pipeline's data
 MEDIUM = {
-    "configs": [_config("J", "time_dependent", "fourier", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
-                _config("A", "linear", "sinusoidal", seeds=(0,), samplers=[["ddpm", 1000], ["dpmsolver++", 20]])],
-    "steps": 1000, "batch_size": 8, "eval_samples": 8, "bootstrap": 500, "features": {"steps": 400},
-    "latent": {"samplers": [["dpmsolver++", 10]], "views": 8},
+    "configs": [_config("J", "time_dependent", "fourier", samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
+                _config("A", "linear", "sinusoidal", samplers=[["ddpm", 1000], ["dpmsolver++", 20]]),
+                _config("B", "linear", "fourier", seeds=(0,)),
+                _config("E*", "ramp", "fourier", seeds=(0,), samplers=[["ddpm", 800]]),
+                _config("F", "ramp", "fourier", seeds=(0,))],
+    "steps": 2000, "batch_size": 8, "eval_samples": 16, "bootstrap": 500, "features": {"steps": 400},
+    "latent": {"samplers": [["dpmsolver++", 10]], "views": 16},
 }
 
 
@@ -124,13 +130,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", default="artifacts/bench_ddpm", help="the bench project (cache, data, models)")
     parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
     parser.add_argument("--medium", action="store_true",
-                        help="J vs A on the range image, 1 seed, 1000 training steps (about 30 min at one thread)")
+                        help="the targets on the range image: J, A x3 seeds, B, E*/F, 2000 steps (about 50 min)")
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
     root, out = Path(args.root).resolve(), Path(args.out)
-    if not (REPO / "artifacts" / "stage1" / "model.pt").exists():
-        print("bench/ddpm.py: artifacts/stage1/model.pt is missing: run `make run` (or dvc repro stage1) first")
+    needed = [REPO / "artifacts" / "stage1" / "seed_0" / "model.safetensors", REPO / "artifacts" / "vqvae" / "x",
+              REPO / "artifacts" / "vqvae" / "y"]
+    missing = [str(p.relative_to(REPO)) for p in needed if not p.exists()]
+    if missing:
+        print(f"bench/ddpm.py: {', '.join(missing)} missing: run `make run` (or dvc repro stage1) first")
         return 2
     root.mkdir(parents=True, exist_ok=True)
     write_text(root / "params.yaml", yaml.safe_dump(sweep_params(REPO, quick=args.quick, medium=args.medium), sort_keys=False))

@@ -379,6 +379,23 @@ def full_noise(rep: Representation, n: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).standard_normal((n, *rep.shape)).astype(np.float32)
 
 
+def reference_sets(cfg: DdpmConfig, rep: Representation, own: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The reference rows' sets, sized like a model row's: (full-noise sets, real-train sets).
+
+    k = the most seeds any configuration trains; each set holds ``eval_samples`` images. Noise
+    set i is drawn from seed ``cfg.seed + i``; the real sets are disjoint draws (without
+    replacement, seeded by ``cfg.seed``) from ``own``, the training images (N, C, H, W), or as
+    many whole sets as N allows (at least one, of min(N, eval_samples) images).
+    """
+    k = max(len(seeds_of(cfg, run)) for run in cfg.configs)
+    n = cfg.eval_samples
+    noise = [full_noise(rep, n, cfg.seed + i) for i in range(k)]
+    order = np.random.default_rng(cfg.seed).permutation(len(own))
+    whole = max(1, min(k, len(own) // n))
+    real = [own[np.sort(order[i * n:(i + 1) * n])] for i in range(whole)]
+    return noise, real
+
+
 def clouds(rep: Representation, pixels: np.ndarray) -> list[np.ndarray]:
     """Generated (n, C, H, W) pixels -> n point clouds."""
     return [rep.points(p) for p in pixels]
@@ -412,9 +429,12 @@ def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], t
     every seed, and score it against the held-out scans passed through the same representation.
 
     Per representation two reference rows come first: ``full noise`` (N(0, I) pixels decoded,
-    the paper's ceiling) and ``real train views`` (the training scans through the
-    representation: as close as the data itself is to the held-out set). Returns (rows,
-    trained models by name, example pixels by row label for the gallery).
+    the paper's ceiling) and ``real train views`` (training scans through the representation:
+    as close as the data itself is to the held-out set). Each reference row is scored exactly
+    like a model row: as many sets as the most-seeded configuration has seeds, each of
+    ``eval_samples`` clouds (:func:`reference_sets`), since the set-level JSD and Fréchet
+    distances depend on the set size. Returns (rows, trained models by name, example pixels
+    by row label for the gallery).
     """
     from tasks.ddpm_metrics import score, set_stats
 
@@ -425,12 +445,11 @@ def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], t
         real[name] = set_stats([rep.points(rep.pixels(s.points)) for s in test], nets)
         training[name] = pixel_set(rep, train, mirror=True)
         examples[f"{name} real"] = pixel_set(rep, test[:2]).numpy()
-        noise = full_noise(rep, cfg.eval_samples, cfg.seed)
-        rows.append(_row("reference", name, "full noise",
-                         **score(real[name], [set_stats(clouds(rep, noise), nets)], n_boot=cfg.bootstrap, seed=cfg.seed)))
-        own = training[name][:len(train)].numpy()
-        rows.append(_row("reference", name, "real train views",
-                         **score(real[name], [set_stats(clouds(rep, own), nets)], n_boot=cfg.bootstrap, seed=cfg.seed)))
+        noise, own = reference_sets(cfg, rep, training[name][:len(train)].numpy())
+        for label, sets in (("full noise", noise), ("real train views", own)):
+            rows.append(_row("reference", name, label, seeds=list(range(len(sets))),
+                             **score(real[name], [set_stats(clouds(rep, x), nets) for x in sets],
+                                     n_boot=cfg.bootstrap, seed=cfg.seed)))
     trained: dict[str, TrainedModel] = {}
     data = data_key(train)
     for run, sampler, steps in sample_rows(cfg):
@@ -531,7 +550,7 @@ def context(cfg: DdpmConfig, train: list[Scan], test: list[Scan]) -> dict:
     """What the report says about the data and the estimator."""
     return {"description": DESCRIPTION, "train_scans": len(train), "test_scans": len(test),
             "train_split": cfg.train_split, "test_split": cfg.test_split, "ego_only": cfg.ego_only,
-            "eval_samples": cfg.eval_samples, "bootstrap": cfg.bootstrap}
+            "eval_samples": cfg.eval_samples, "bootstrap": cfg.bootstrap, "threads": torch.get_num_threads()}
 
 
 def model_summary(trained: dict[str, TrainedModel]) -> dict:

@@ -260,13 +260,34 @@ def test_table_scores_every_row_against_the_same_held_out_scans(cfg, scans, nets
                      ("range", "J", "dpmsolver++"), ("bev", "J", "dpmsolver++")]
     assert set(trained) == {f"{r}-time_dependent-fourier-seed{s}" for r in ("range", "bev") for s in (0, 1)}
     for r in rows:
-        assert r["samples"] == ([3, 3] if r["route"] == "pixel" else [3] if r["config"] == "full noise" else [3])
+        # reference rows are sized like model rows: 2 noise sets (2 seeds), and as many disjoint sets of
+        # 3 training scans as the 3 scans allow
+        assert r["samples"] == ([3, 3] if r["route"] == "pixel" or r["config"] == "full noise" else [3])
         assert all(r[m][1] <= r[m][2] for m in ("jsd", "mmd", "frid", "fpvd"))
     # the train scans are closer to the held-out ones than pure noise is
     by = {(r["representation"], r["config"]): r for r in rows}
     for rep in ("range", "bev"):
         assert by[(rep, "real train views")]["jsd"][0] < by[(rep, "full noise")]["jsd"][0]
     assert {"range real", "bev real", "range J dpmsolver++-2", "bev J dpmsolver++-2"} == set(examples)
+
+
+def test_reference_sets_are_sized_like_a_model_row(cfg):
+    two = dataclasses.replace(cfg, eval_samples=4, seeds=(0, 1, 2),
+                              configs=tuple(dataclasses.replace(r, seeds=()) for r in cfg.configs))
+    rep = stage.representations(two)["range"]
+    own = np.arange(10, dtype=np.float32)[:, None, None, None] * np.ones((1, *rep.shape), np.float32)
+    noise, real = stage.reference_sets(two, rep, own)
+    # 3 seeds -> 3 noise sets of 4, each its own draw; 10 images hold only 2 whole disjoint sets of 4
+    assert [x.shape for x in noise] == [(4, *rep.shape)] * 3
+    assert not np.array_equal(noise[0], noise[1])
+    np.testing.assert_array_equal(noise[0], stage.full_noise(rep, 4, two.seed))
+    assert [len(x) for x in real] == [4, 4]
+    ids = [set(x[:, 0, 0, 0].astype(int).tolist()) for x in real]
+    assert len(ids[0] | ids[1]) == 8  # disjoint
+    again = stage.reference_sets(two, rep, own)[1]
+    assert all(np.array_equal(a, b) for a, b in zip(real, again))
+    # fewer images than one set: one set of all of them
+    assert [len(x) for x in stage.reference_sets(two, rep, own[:3])[1]] == [3]
 
 
 def test_the_bench_sweep_is_a_valid_config_covering_table_one():
@@ -284,8 +305,12 @@ def test_the_bench_sweep_is_a_valid_config_covering_table_one():
         cfg = config_from_dict(params).ddpm
         assert Path(cfg.latent.stage1).is_absolute() and Path(cfg.latent.stage1).name == "stage1"
     medium = config_from_dict(sweep_params(repo, medium=True))
-    assert {(r.name, r.schedule, r.embedding) for r in medium.ddpm.configs} == {
-        ("J", "time_dependent", "fourier"), ("A", "linear", "sinusoidal")}
+    assert {(r.name, r.schedule, r.embedding, len(r.seeds)) for r in medium.ddpm.configs} == {
+        ("J", "time_dependent", "fourier", 3), ("A", "linear", "sinusoidal", 3), ("B", "linear", "fourier", 1),
+        ("E*", "ramp", "fourier", 1), ("F", "ramp", "fourier", 1)}
+    # E* and F are one trained model sampled with 800 and 1000 DDPM steps
+    rows = {(r.name, s, n) for r, s, n in stage.sample_rows(medium.ddpm)}
+    assert {("E*", "ddpm", 800), ("F", "ddpm", 1000), ("J", "ddpm", 1000), ("A", "dpmsolver++", 20)} <= rows
     assert medium.simulate == config_from_dict({"profile": "tiny"}).simulate  # the tiny pipeline's data
     full = config_from_dict(sweep_params(repo, quick=False)).ddpm
     seeds = {r.name: len(r.seeds) for r in full.configs}
