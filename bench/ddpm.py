@@ -17,7 +17,8 @@ own under ``--root`` whose params.yaml is the tiny profile with :data:`SWEEP` ov
 - ``--quick``: 2 configurations x 1 seed at a few steps (checks the wiring in minutes).
 - ``--medium``: the issue's targets on the range image at a CPU budget (:data:`MEDIUM`: J and A
   over 3 seeds, B, F and E* over 1, 2000 training steps, 16 samples per set), on the tiny
-  pipeline's data (2-core Intel Xeon, 2 threads: each model ~4 min, each DDPM-1000 set ~1 min).
+  pipeline's data (55 min on a 2-core Intel Xeon at 2 threads: each model ~5 min, each DDPM-1000
+  set ~1 min).
 
 Every trained model and generated set is cached under ``--root`` (keys: config, data, code),
 so an interrupted sweep resumes where it stopped. Writes <out>/bench_ddpm.md (the stage's
@@ -130,19 +131,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", default="artifacts/bench_ddpm", help="the bench project (cache, data, models)")
     parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
     parser.add_argument("--medium", action="store_true",
-                        help="the targets on the range image: J, A x3 seeds, B, E*/F, 2000 steps (about 50 min)")
+                        help="the targets on the range image: J, A x3 seeds, B, E*/F, 2000 steps (about 55 min)")
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
+    from tasks.artifacts import WEIGHTS
+    from tasks.stage1 import replica_dir
+    from typ.config import config_from_dict
+
     root, out = Path(args.root).resolve(), Path(args.out)
-    needed = [REPO / "artifacts" / "stage1" / "seed_0" / "model.safetensors", REPO / "artifacts" / "vqvae" / "x",
-              REPO / "artifacts" / "vqvae" / "y"]
-    missing = [str(p.relative_to(REPO)) for p in needed if not p.exists()]
+    params = sweep_params(REPO, quick=args.quick, medium=args.medium)
+    cfg = config_from_dict(params)
+    latent = cfg.ddpm.latent  # the weights the latent route will load
+    needed = [replica_dir(Path(latent.stage1), cfg.stage1.seed) / WEIGHTS,
+              *(Path(latent.vqvae) / k / WEIGHTS for k in ("x", "y"))]
+    missing = [str(p) for p in needed if not p.exists()]
     if missing:
         print(f"bench/ddpm.py: {', '.join(missing)} missing: run `make run` (or dvc repro stage1) first")
         return 2
     root.mkdir(parents=True, exist_ok=True)
-    write_text(root / "params.yaml", yaml.safe_dump(sweep_params(REPO, quick=args.quick, medium=args.medium), sort_keys=False))
+    write_text(root / "params.yaml", yaml.safe_dump(params, sort_keys=False))
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlruns.db'}", "PYTHONPATH": str(REPO)}
     seconds = run_stages(root, env)
     info = machine()

@@ -162,7 +162,7 @@ def report(rows: list[dict], *, round_trips: dict, feature_scores: dict, context
              "to points through the representation's inverse, and the held-out scans go through the same "
              "round trip (so the `real train views` row is the floor a perfect model would reach and `full "
              "noise` the ceiling). s/sample: wall time of the reverse process per sample at "
-             f"{context.get('threads', 1)} torch CPU thread(s), "
+             f"{context['threads']} torch CPU thread(s), "
              "batch of all samples.", "",
              f"JSD / MMD: preset `r2dm` — {PRESETS['r2dm'].convention}", "", FEATURE_NOTE, "",
              "spread: sqrt(tr Σ_gen / tr Σ_real) of the FRID features: 1 = as varied as the held-out scans, "
