@@ -99,10 +99,13 @@ MEDIUM = {
 }
 
 
-def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False) -> dict:
+def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False, depth: str | None = None) -> dict:
     """The bench project's params.yaml: :data:`SWEEP` (or its quick / medium version), with the
-    latent route pointed at this checkout's trained stage-1 and VQ-VAE models."""
+    latent route pointed at this checkout's trained stage-1 and VQ-VAE models, and ``depth`` (if
+    given) as the range image's depth encoding."""
     params = copy.deepcopy(SWEEP)
+    if depth is not None:
+        params["ddpm"]["range_image"] = {"depth": depth}
     if quick:
         params["simulate"]["scenarios"] = {"target": {"train": 2, "test": 1}}
         params["ddpm"].update(copy.deepcopy(QUICK))
@@ -132,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
     parser.add_argument("--medium", action="store_true",
                         help="the targets on the range image: J, A x3 seeds, B, E*/F, 2000 steps (about 55 min)")
+    parser.add_argument("--depth", choices=["linear", "log"],
+                        help="the range image's depth encoding (default: the profile's); one given writes "
+                             "bench_ddpm_<depth>.* beside the default's bench_ddpm.*")
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
@@ -140,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     from typ.config import config_from_dict
 
     root, out = Path(args.root).resolve(), Path(args.out)
-    params = sweep_params(REPO, quick=args.quick, medium=args.medium)
+    params = sweep_params(REPO, quick=args.quick, medium=args.medium, depth=args.depth)
+    stem = f"bench_ddpm_{args.depth}" if args.depth else "bench_ddpm"
     cfg = config_from_dict(params)
     latent = cfg.ddpm.latent  # the weights the latent route will load
     needed = [replica_dir(Path(latent.stage1), cfg.stage1.seed) / WEIGHTS,
@@ -155,21 +162,22 @@ def main(argv: list[str] | None = None) -> int:
     seconds = run_stages(root, env)
     info = machine()
     md = (root / "reports" / "ddpm.md").read_text()
-    md = md.replace("(ddpm_pareto.png)", "(bench_ddpm_pareto.png)").replace("(ddpm_samples.png)",
-                                                                            "(bench_ddpm_samples.png)")
+    md = md.replace("(ddpm_pareto.png)", f"({stem}_pareto.png)").replace("(ddpm_samples.png)",
+                                                                         f"({stem}_samples.png)")
     title, _, body = md.partition("\n")
     header = (f"{title.replace('# ', '# bench: ', 1)}\n\nMachine: {machine_line(info)}; `OMP_NUM_THREADS="
               f"{os.environ.get('OMP_NUM_THREADS', 'unset')}`. Wall time per stage of the bench project "
               f"({'--quick' if args.quick else '--medium' if args.medium else 'full sweep'}): "
               + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items())
               + ". Params: `bench/ddpm.py` SWEEP over the tiny profile (written to "
-              f"`{args.root}/params.yaml`).\n")
+              f"`{args.root}/params.yaml`); range-image depth encoding: "
+              f"`{cfg.ddpm.range_image.depth}`.\n")
     out.mkdir(parents=True, exist_ok=True)
-    write_text(out / "bench_ddpm.md", header + body)
-    for name in ("ddpm_pareto.png", "ddpm_samples.png"):
-        shutil.copyfile(root / "reports" / name, out / f"bench_{name}")
-    shutil.copyfile(root / "metrics" / "ddpm.json", out / "bench_ddpm.json")
-    print(f"wrote {out / 'bench_ddpm.md'}")
+    write_text(out / f"{stem}.md", header + body)
+    for name in ("pareto.png", "samples.png"):
+        shutil.copyfile(root / "reports" / f"ddpm_{name}", out / f"{stem}_{name}")
+    shutil.copyfile(root / "metrics" / "ddpm.json", out / f"{stem}.json")
+    print(f"wrote {out / f'{stem}.md'}")
     return 0
 
 

@@ -110,6 +110,7 @@ class Representation(ABC):
     name: str
     layout: RangeLayout | Grid
     patch: tuple[int, int]
+    depth: str = "linear"  #: a range image's depth encoding (typ.projection.to_unit); BEV: linear
 
     @property
     @abstractmethod
@@ -138,11 +139,11 @@ class Representation(ABC):
 
     def pixels(self, points: np.ndarray) -> np.ndarray:
         """(N, >=3) points -> (C, H, W) float32 pixels in [-1, 1]; an empty cloud gives an empty image."""
-        return to_unit(self.image(points) if len(points) else self.empty_image(), self.layout)
+        return to_unit(self.image(points) if len(points) else self.empty_image(), self.layout, depth=self.depth)
 
     def points(self, pixels: np.ndarray) -> np.ndarray:
         """(C, H, W) model pixels -> (M, 3) float32 points (canonicalised first, see from_unit)."""
-        return self.image_points(from_unit(pixels, self.layout))
+        return self.image_points(from_unit(pixels, self.layout, depth=self.depth))
 
     def mirror(self, pixels: np.ndarray) -> np.ndarray:
         """Pixels of the scan mirrored across the x axis (y -> -y)."""
@@ -150,7 +151,7 @@ class Representation(ABC):
 
     def describe(self) -> dict:
         return {"name": self.name, "layout": self.layout.to_dict(), "patch": list(self.patch),
-                "shape": list(self.shape)}
+                "depth": self.depth, "shape": list(self.shape)}
 
 
 class RangeRepresentation(Representation):
@@ -233,7 +234,7 @@ def representations(cfg: DdpmConfig, where: str = "params.yaml") -> dict[str, Re
         raise TypError(where, "ddpm.bev.grid.y_range", "a range symmetric about 0 (training mirrors y -> -y)",
                        list(g.y_range))
     grid = Grid(g.x_range, g.y_range, g.z_range, g.shape)
-    return {"range": RangeRepresentation("range", layout, tuple(cfg.range_image.patch)),
+    return {"range": RangeRepresentation("range", layout, tuple(cfg.range_image.patch), cfg.range_image.depth),
             "bev": BevRepresentation("bev", grid, tuple(cfg.bev.patch))}
 
 
@@ -533,7 +534,7 @@ def latent_route(cfg, root: Path, nets) -> list[dict]:
 DESCRIPTION = (
     "Aghanouri & Olaverri-Monreal's LiDAR DDPM rebuilt in typ: a lightweight pixel-space U-Net DDPM "
     "(`models/pixel_ddpm.py`, ε-prediction, dropout 0.1, AdamW) on the equirectangular range image "
-    "(the target sensor's beams x azimuth bins, depth normalised to [-1, 1]) and on the BEV image "
+    "(the target sensor's beams x azimuth bins, depth encoded to [-1, 1] {depth}) and on the BEV image "
     "(occupancy + height of the highest point per cell), trained on the simulated target domain. "
     "Rows are Table I configurations (schedule x time embedding; the paper's dataset column is the one "
     "simulated target domain here, so its I = H and K = J) sampled with the samplers listed; every "
@@ -548,7 +549,8 @@ def round_trips(reps: dict[str, Representation], scans: list[Scan]) -> dict:
 
 def context(cfg: DdpmConfig, train: list[Scan], test: list[Scan]) -> dict:
     """What the report says about the data and the estimator."""
-    return {"description": DESCRIPTION, "train_scans": len(train), "test_scans": len(test),
+    depth = {"linear": "linearly", "log": "on R2DM's log scale, log2(d + 1) / log2(max_range + 1)"}
+    return {"description": DESCRIPTION.format(depth=depth[cfg.range_image.depth]), "train_scans": len(train), "test_scans": len(test),
             "train_split": cfg.train_split, "test_split": cfg.test_split, "ego_only": cfg.ego_only,
             "eval_samples": cfg.eval_samples, "bootstrap": cfg.bootstrap, "threads": torch.get_num_threads()}
 

@@ -17,6 +17,7 @@ from tasks.training import TrainingDiverged
 from typ.config import config_from_dict
 from typ.errors import TypError
 from typ.metrics import jsd_bev, mmd_bev
+from typ.projection import range_to_points, to_unit
 from typ.sim import simulate_scenario
 from typ.voxel import Grid
 
@@ -109,6 +110,7 @@ def test_paper_profile_expresses_table_one():
     ({"bev": {"patch": [3, 3]}}, "ddpm.bev.patch"),
     ({"eval_samples": 1}, "ddpm.eval_samples"),
     ({"unet": {"dropout": 1.5}}, "ddpm.unet.dropout"),
+    ({"range_image": {"depth": "sqrt"}}, "ddpm.range_image.depth"),
 ])
 def test_bad_params_name_their_field(override, field):
     with pytest.raises(TypError, match=field.replace("[", r"\[").replace("]", r"\]").replace("*", r"\*")):
@@ -119,6 +121,18 @@ def test_range_patch_must_fold_the_sensors_beams(cfg):
     bad = dataclasses.replace(cfg, range_image=dataclasses.replace(cfg.range_image, patch=(3, 4)))
     with pytest.raises(TypError, match="ddpm.range_image.patch"):
         stage.representations(bad)
+
+
+@pytest.mark.parametrize("depth", ["linear", "log"])
+def test_the_range_representation_uses_the_configured_depth_encoding(cfg, scans, depth):
+    rep = stage.representations(dataclasses.replace(cfg, range_image=dataclasses.replace(cfg.range_image,
+                                                                                      depth=depth)))["range"]
+    img = rep.image(scans[0].points)
+    px = rep.pixels(scans[0].points)
+    np.testing.assert_array_equal(px, to_unit(img, rep.layout, depth=depth))
+    assert rep.describe()["depth"] == depth  # part of every model's key: a change retrains
+    # decoding gives back the image's points
+    np.testing.assert_allclose(rep.points(px), range_to_points(img, rep.layout), rtol=2e-6, atol=1e-4)
 
 
 def test_mirrored_pixels_are_the_pixels_of_the_mirrored_scan(cfg, scans):
@@ -312,6 +326,10 @@ def test_the_bench_sweep_is_a_valid_config_covering_table_one():
     rows = {(r.name, s, n) for r, s, n in stage.sample_rows(medium.ddpm)}
     assert {("E*", "ddpm", 800), ("F", "ddpm", 1000), ("J", "ddpm", 1000), ("A", "dpmsolver++", 20)} <= rows
     assert medium.simulate == config_from_dict({"profile": "tiny"}).simulate  # the tiny pipeline's data
+    # --depth overrides the range image's encoding and nothing else of it
+    assert medium.ddpm.range_image == config_from_dict({"profile": "tiny"}).ddpm.range_image
+    linear = config_from_dict(sweep_params(repo, medium=True, depth="linear")).ddpm
+    assert linear.range_image == dataclasses.replace(medium.ddpm.range_image, depth="linear")
     full = config_from_dict(sweep_params(repo, quick=False)).ddpm
     seeds = {r.name: len(r.seeds) for r in full.configs}
     assert seeds == {"A": 3, "B": 3, "C": 1, "D": 1, "E*": 3, "F": 3, "G": 1, "H": 1, "J": 3}

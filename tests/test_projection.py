@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from typ.errors import TypError
-from typ.projection import (HDL32E, HDL64E, RangeLayout, bev_image, bev_to_points, from_unit, range_image,
-                            range_pixels, range_to_points, to_unit)
+from typ.projection import (HDL32E, HDL64E, RangeLayout, bev_image, bev_to_points, from_unit, no_return_threshold,
+                            range_image, range_pixels, range_to_points, to_unit)
 from typ.sim import domain_spec, simulate_scenario
 from typ.voxel import Grid
 
@@ -198,3 +198,58 @@ def test_model_pixels_round_trip_for_canonical_images(sim_view):
     noisy = from_unit(np.full((1, *layout.shape), -0.999, np.float32), layout)
     assert (noisy == 0).all()
     assert from_unit(np.full((1, *layout.shape), 3.0, np.float32), layout).max() < layout.max_range
+
+
+def test_log_depth_pixels_are_hand_worked_values():
+    layout = RangeLayout((-1.0, 0.0, 1.0), 4, 255.0, 1.0)  # log2(255 + 1) = 8
+    img = np.zeros(layout.shape, np.float32)
+    img[0, :] = [1.0, 3.0, 7.0, 15.0]   # log2(d + 1) = 1, 2, 3, 4
+    img[1, 0] = 254.0
+    px = to_unit(img, layout, depth="log")[0]
+    np.testing.assert_allclose(px[0], [2 * k / 8 - 1 for k in (1, 2, 3, 4)], atol=1e-6)
+    assert px[1, 0] == pytest.approx(2 * math.log2(255) / 8 - 1, abs=1e-6)
+    assert (px[1, 1:] == -1).all() and (px[2] == -1).all()  # no return stays -1
+    # the same depths, linearly: 2 d / 255 - 1
+    np.testing.assert_allclose(to_unit(img, layout)[0, 0], 2 * img[0] / 255 - 1, atol=1e-6)
+
+
+@pytest.mark.parametrize("depth", ["linear", "log"])
+def test_both_depth_encodings_round_trip_canonical_images(sim_view, depth):
+    view, sensor = sim_view
+    layout = RangeLayout.from_sensor(sensor, 256)
+    img = range_image(view.points, layout)
+    img[0, 0] = layout.min_range  # the edges of the kept range survive too
+    img[0, 1] = np.nextafter(np.float32(layout.max_range), np.float32(0))
+    px = to_unit(img, layout, depth=depth)
+    assert px.min() >= -1 and px.max() <= 1
+    back = from_unit(px, layout, depth=depth)
+    assert np.array_equal(back > 0, img > 0)
+    np.testing.assert_allclose(back, img, rtol=2e-6, atol=1e-5)
+    # the log scale spends more of [-1, 1] on near returns: the median return sits higher
+    if depth == "log":
+        lin = to_unit(img, layout)
+        assert np.median(px[img[None] > 0]) > np.median(lin[img[None] > 0]) + 0.3
+
+
+def test_log_depth_reads_no_return_below_the_threshold_and_clamps_above_it():
+    layout = RangeLayout((-1.0, 0.0, 1.0), 4, 75.0, 0.5)
+    vmin = 2 * math.log2(1.5) / math.log2(76) - 1                  # pixel of min_range, -0.68
+    thr = no_return_threshold(layout, "log")
+    assert thr == pytest.approx((vmin - 1) / 2)
+    px = np.full((1, *layout.shape), -1.0, np.float32)
+    px[0, 0, :] = [thr - 0.01, thr + 0.01, vmin, 5.0]
+    d = from_unit(px, layout, depth="log")
+    assert d[0, 0] == 0 and d[0, 1] == pytest.approx(0.5) and d[0, 2] == pytest.approx(0.5, rel=1e-5)
+    assert d[0, 3] == np.nextafter(np.float32(75.0), np.float32(0))  # clipped to 1, below max_range
+    assert (d[1:] == 0).all()
+    # linear keeps its threshold at the pixel of min_range
+    assert no_return_threshold(layout) == pytest.approx(2 * 0.5 / 75 - 1, abs=2e-6)
+
+
+def test_unknown_or_misplaced_depth_encodings_are_named():
+    with pytest.raises(TypError, match="depth"):
+        to_unit(np.zeros(HDL64E.shape, np.float32), HDL64E, depth="sqrt")
+    with pytest.raises(TypError, match="depth"):
+        from_unit(np.zeros((1, *HDL64E.shape), np.float32), HDL64E, depth="sqrt")
+    with pytest.raises(TypError, match="BEV"):
+        to_unit(np.zeros((2, 4, 4), np.float32), BEV, depth="log")

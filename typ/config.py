@@ -801,6 +801,9 @@ class DdpmRangeConfig:
     azimuth_bins: int
     #: space-to-depth block the U-Net folds into channels ([1, 1]: plain pixels)
     patch: tuple[int, int]
+    #: depth -> pixel: ``linear`` (2·d/max_range - 1) or ``log`` (R2DM's log2(d+1)/log2(max+1)),
+    #: see typ.projection.to_unit
+    depth: Literal["linear", "log"]
 
 
 @dataclass(frozen=True)

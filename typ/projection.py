@@ -38,7 +38,9 @@ rounding of the depth) and ``bev_image(bev_to_points(B)) == B`` for any image in
 form (depths 0 or in [min_range, max_range); occupancy 0/1, heights in the z range).
 
 :func:`to_unit` / :func:`from_unit` map the images to and from the [-1, 1] pixels a
-diffusion model sees (from_unit also canonicalises generated images).
+diffusion model sees (from_unit also canonicalises generated images). A range image's depth is
+encoded linearly or, as R2DM and LiDARGen do, on a log scale (``depth="log"``); both send "no
+return" to -1, and both round-trip a canonical image to float32 rounding.
 """
 from __future__ import annotations
 
@@ -51,8 +53,9 @@ from typ.errors import TypError
 from typ.metrics.truth import check_points
 from typ.voxel import Grid
 
-__all__ = ["HDL32E", "HDL64E", "RangeLayout", "RangePixels", "bev_image", "bev_to_points", "from_unit",
-           "range_image", "range_pixels", "range_to_points", "to_unit", "voxel_indices"]
+__all__ = ["DEPTH_ENCODINGS", "HDL32E", "HDL64E", "RangeLayout", "RangePixels", "bev_image", "bev_to_points",
+           "from_unit", "no_return_threshold", "range_image", "range_pixels", "range_to_points", "to_unit",
+           "voxel_indices"]
 
 #: float32 storage of depth and coordinates: relative error of the round trip beyond the angles
 FLOAT32_SLACK = 4e-7
@@ -336,15 +339,48 @@ def bev_to_points(image, grid: Grid, *, where: str = "bev_to_points") -> np.ndar
 # ---------------------------------------------------------------- model pixels
 
 
-def to_unit(image, layout) -> np.ndarray:
+#: how a range image's depth becomes a pixel (:func:`to_unit`); see the module doc
+DEPTH_ENCODINGS = ("linear", "log")
+
+
+def _depth_to_unit(d: np.ndarray, layout: RangeLayout, depth: str) -> np.ndarray:
+    """Depth (metres, 0 = no return) -> [-1, 1]: no return is -1 under either encoding."""
+    if depth == "linear":
+        return 2.0 * d / layout.max_range - 1.0
+    scale = math.log2(layout.max_range + 1.0)
+    return np.where(d > 0, 2.0 * np.log2(np.maximum(d, 0.0) + 1.0) / scale - 1.0, -1.0)
+
+
+def no_return_threshold(layout: RangeLayout, depth: str = "linear") -> float:
+    """Pixel value below which :func:`from_unit` reads "no return": linear, the pixel of
+    ``min_range`` itself (less 1e-6, the float32 rounding of a stored pixel); log, half way
+    between -1 (no return) and the pixel of ``min_range`` (the log scale leaves a gap of
+    ``2·log2(min_range + 1)/log2(max_range + 1)`` there, ~0.17 for 120 m, that a sample's
+    residual noise must not cross)."""
+    vmin = float(_depth_to_unit(np.array(layout.min_range), layout, depth))
+    return vmin - 1e-6 if depth == "linear" else (vmin - 1.0) / 2.0
+
+
+def _check_depth(depth: str, where: str) -> None:
+    if depth not in DEPTH_ENCODINGS:
+        raise TypError(where, "depth", f"one of {list(DEPTH_ENCODINGS)}", depth)
+
+
+def to_unit(image, layout, *, depth: str = "linear") -> np.ndarray:
     """Physical image -> the [-1, 1] pixels a diffusion model sees, float32, with a channel axis.
 
-    Range layout: (H, W) depth -> (1, H, W) ``2·d/max_range - 1`` (no return: -1). BEV grid:
-    (2, H, W) -> ``[2·occ - 1, 2·(z - z_min)/(z_max - z_min) - 1]`` (empty: height -1).
+    Range layout: (H, W) depth -> (1, H, W); no return is -1. ``depth="linear"``:
+    ``2·d/max_range - 1``; ``depth="log"`` (R2DM's, LiDARGen's log scaling):
+    ``2·log2(d + 1)/log2(max_range + 1) - 1``, which gives near objects, where most returns and
+    most detail lie, most of the pixel range. BEV grid: (2, H, W) ->
+    ``[2·occ - 1, 2·(z - z_min)/(z_max - z_min) - 1]`` (empty: height -1); ``depth`` must be linear.
     """
+    _check_depth(depth, "to_unit")
     if isinstance(layout, RangeLayout):
         img = _check_image(image, layout.shape, "to_unit", "beam")
-        return (2.0 * img / layout.max_range - 1.0).astype(np.float32)[None]
+        return _depth_to_unit(img.astype(np.float64), layout, depth).astype(np.float32)[None]
+    if depth != "linear":
+        raise TypError("to_unit", "depth", "'linear' for a BEV image (it has no depth channel)", depth)
     grid = _bev_grid(layout, "to_unit")
     H, W, _ = grid.shape
     img = _check_image(image, (2, H, W), "to_unit", "BEV")
@@ -352,17 +388,26 @@ def to_unit(image, layout) -> np.ndarray:
     return np.stack([2.0 * img[0] - 1.0, 2.0 * (img[1] - z_lo) / (z_hi - z_lo) - 1.0]).astype(np.float32)
 
 
-def from_unit(pixels, layout) -> np.ndarray:
+def from_unit(pixels, layout, *, depth: str = "linear") -> np.ndarray:
     """Inverse of :func:`to_unit` for model output: values are clipped to [-1, 1] and the image
-    is made canonical — range: depths below ``min_range`` become 0 (no return); BEV: occupancy
-    thresholded at 0.5, height of empty cells set to ``z_min``. Accepts (C, H, W) float pixels."""
+    is made canonical — range: pixels below :func:`no_return_threshold` become 0 (no return),
+    the rest a depth in ``[min_range, max_range)``; BEV: occupancy thresholded at 0.5, height of
+    empty cells set to ``z_min``. Accepts (C, H, W) float pixels."""
+    _check_depth(depth, "from_unit")
     px = np.clip(np.asarray(pixels, dtype=np.float64), -1.0, 1.0)
     if isinstance(layout, RangeLayout):
         if px.shape != (1, *layout.shape):
             raise TypError("from_unit", "pixels", f"shape (1, {layout.height}, {layout.width})", px.shape)
-        d = (px[0] + 1.0) / 2.0 * layout.max_range
+        v = px[0]
+        if depth == "linear":
+            d = (v + 1.0) / 2.0 * layout.max_range
+        else:
+            d = np.exp2((v + 1.0) / 2.0 * math.log2(layout.max_range + 1.0)) - 1.0
         below_max = np.nextafter(np.float32(layout.max_range), np.float32(0))  # max_range itself is not kept
-        return np.where(d >= layout.min_range, np.minimum(d.astype(np.float32), below_max), 0).astype(np.float32)
+        d = np.clip(d.astype(np.float32), np.float32(layout.min_range), below_max)
+        return np.where(v >= no_return_threshold(layout, depth), d, 0).astype(np.float32)
+    if depth != "linear":
+        raise TypError("from_unit", "depth", "'linear' for a BEV image (it has no depth channel)", depth)
     grid = _bev_grid(layout, "from_unit")
     H, W, _ = grid.shape
     if px.shape != (2, H, W):
