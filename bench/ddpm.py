@@ -17,7 +17,7 @@ own under ``--root`` whose params.yaml is the tiny profile with :data:`SWEEP` ov
 - ``--quick``: 2 configurations x 1 seed at a few steps (checks the wiring in minutes).
 - ``--medium``: the issue's targets on the range image at a CPU budget (:data:`MEDIUM`: J and A
   over 3 seeds, B, F and E* over 1, 2000 training steps, 16 samples per set), on the tiny
-  pipeline's data (55 min on a 2-core Intel Xeon at 2 threads: each model ~5 min, each DDPM-1000
+  pipeline's data (55–61 min on a 2-core Intel Xeon at 2 threads: each model ~5–6 min, each DDPM-1000
   set ~1 min).
 
 Every trained model and generated set is cached under ``--root`` (keys: config, data, code),
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", default="artifacts/bench_ddpm", help="the bench project (cache, data, models)")
     parser.add_argument("--quick", action="store_true", help="2 configurations, 1 seed, a few steps")
     parser.add_argument("--medium", action="store_true",
-                        help="the targets on the range image: J, A x3 seeds, B, E*/F, 2000 steps (about 55 min)")
+                        help="the targets on the range image: J, A x3 seeds, B, E*/F, 2000 steps (about an hour)")
     parser.add_argument("--depth", choices=["linear", "log"],
                         help="the range image's depth encoding (default: the profile's); one given writes "
                              "bench_ddpm_<depth>.* beside the default's bench_ddpm.*")
