@@ -539,6 +539,8 @@ DESCRIPTION = (
     "Rows are Table I configurations (schedule x time embedding; the paper's dataset column is the one "
     "simulated target domain here, so its I = H and K = J) sampled with the samplers listed; every "
     "sampler clips x̂_0 to the image range at each step.")
+#: DESCRIPTION's words for each ``ddpm.range_image.depth``
+DEPTH_WORDS = {"linear": "linearly", "log": "on R2DM's log scale, log2(d + 1) / log2(max_range + 1)"}
 
 
 def round_trips(reps: dict[str, Representation], scans: list[Scan]) -> dict:
@@ -549,8 +551,8 @@ def round_trips(reps: dict[str, Representation], scans: list[Scan]) -> dict:
 
 def context(cfg: DdpmConfig, train: list[Scan], test: list[Scan]) -> dict:
     """What the report says about the data and the estimator."""
-    depth = {"linear": "linearly", "log": "on R2DM's log scale, log2(d + 1) / log2(max_range + 1)"}
-    return {"description": DESCRIPTION.format(depth=depth[cfg.range_image.depth]), "train_scans": len(train), "test_scans": len(test),
+    return {"description": DESCRIPTION.format(depth=DEPTH_WORDS[cfg.range_image.depth]),
+            "train_scans": len(train), "test_scans": len(test),
             "train_split": cfg.train_split, "test_split": cfg.test_split, "ego_only": cfg.ego_only,
             "eval_samples": cfg.eval_samples, "bootstrap": cfg.bootstrap, "threads": torch.get_num_threads()}
 

@@ -361,9 +361,19 @@ def no_return_threshold(layout: RangeLayout, depth: str = "linear") -> float:
     return vmin - 1e-6 if depth == "linear" else (vmin - 1.0) / 2.0
 
 
-def _check_depth(depth: str, where: str) -> None:
+def _unit_to_depth(v: np.ndarray, layout: RangeLayout, depth: str) -> np.ndarray:
+    """Inverse of :func:`_depth_to_unit` on [-1, 1] (no threshold: see :func:`from_unit`)."""
+    if depth == "linear":
+        return (v + 1.0) / 2.0 * layout.max_range
+    return np.exp2((v + 1.0) / 2.0 * math.log2(layout.max_range + 1.0)) - 1.0
+
+
+def _check_depth(depth: str, layout, where: str) -> None:
+    """A known encoding, and ``linear`` unless ``layout`` is a range image (BEV has no depth)."""
     if depth not in DEPTH_ENCODINGS:
         raise TypError(where, "depth", f"one of {list(DEPTH_ENCODINGS)}", depth)
+    if depth != "linear" and not isinstance(layout, RangeLayout):
+        raise TypError(where, "depth", "'linear' for a BEV image (it has no depth channel)", depth)
 
 
 def to_unit(image, layout, *, depth: str = "linear") -> np.ndarray:
@@ -375,12 +385,10 @@ def to_unit(image, layout, *, depth: str = "linear") -> np.ndarray:
     most detail lie, most of the pixel range. BEV grid: (2, H, W) ->
     ``[2·occ - 1, 2·(z - z_min)/(z_max - z_min) - 1]`` (empty: height -1); ``depth`` must be linear.
     """
-    _check_depth(depth, "to_unit")
+    _check_depth(depth, layout, "to_unit")
     if isinstance(layout, RangeLayout):
         img = _check_image(image, layout.shape, "to_unit", "beam")
         return _depth_to_unit(img.astype(np.float64), layout, depth).astype(np.float32)[None]
-    if depth != "linear":
-        raise TypError("to_unit", "depth", "'linear' for a BEV image (it has no depth channel)", depth)
     grid = _bev_grid(layout, "to_unit")
     H, W, _ = grid.shape
     img = _check_image(image, (2, H, W), "to_unit", "BEV")
@@ -393,21 +401,14 @@ def from_unit(pixels, layout, *, depth: str = "linear") -> np.ndarray:
     is made canonical — range: pixels below :func:`no_return_threshold` become 0 (no return),
     the rest a depth in ``[min_range, max_range)``; BEV: occupancy thresholded at 0.5, height of
     empty cells set to ``z_min``. Accepts (C, H, W) float pixels."""
-    _check_depth(depth, "from_unit")
+    _check_depth(depth, layout, "from_unit")
     px = np.clip(np.asarray(pixels, dtype=np.float64), -1.0, 1.0)
     if isinstance(layout, RangeLayout):
         if px.shape != (1, *layout.shape):
             raise TypError("from_unit", "pixels", f"shape (1, {layout.height}, {layout.width})", px.shape)
-        v = px[0]
-        if depth == "linear":
-            d = (v + 1.0) / 2.0 * layout.max_range
-        else:
-            d = np.exp2((v + 1.0) / 2.0 * math.log2(layout.max_range + 1.0)) - 1.0
         below_max = np.nextafter(np.float32(layout.max_range), np.float32(0))  # max_range itself is not kept
-        d = np.clip(d.astype(np.float32), np.float32(layout.min_range), below_max)
-        return np.where(v >= no_return_threshold(layout, depth), d, 0).astype(np.float32)
-    if depth != "linear":
-        raise TypError("from_unit", "depth", "'linear' for a BEV image (it has no depth channel)", depth)
+        d = np.clip(_unit_to_depth(px[0], layout, depth).astype(np.float32), np.float32(layout.min_range), below_max)
+        return np.where(px[0] >= no_return_threshold(layout, depth), d, 0).astype(np.float32)
     grid = _bev_grid(layout, "from_unit")
     H, W, _ = grid.shape
     if px.shape != (2, H, W):
