@@ -99,13 +99,17 @@ MEDIUM = {
 }
 
 
-def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False, depth: str | None = None) -> dict:
+def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False, depth: str | None = None,
+                 prediction: str | None = None) -> dict:
     """The bench project's params.yaml: :data:`SWEEP` (or its quick / medium version), with the
-    latent route pointed at this checkout's trained stage-1 and VQ-VAE models, and ``depth`` (if
-    given) as the range image's depth encoding."""
+    latent route pointed at this checkout's trained stage-1 and VQ-VAE models, ``depth`` (if
+    given) as the range image's depth encoding and ``prediction`` (if given) as what the U-Net
+    outputs."""
     params = copy.deepcopy(SWEEP)
     if depth is not None:
         params["ddpm"]["range_image"] = {"depth": depth}
+    if prediction is not None:
+        params["ddpm"]["prediction"] = prediction
     if quick:
         params["simulate"]["scenarios"] = {"target": {"train": 2, "test": 1}}
         params["ddpm"].update(copy.deepcopy(QUICK))
@@ -115,6 +119,13 @@ def sweep_params(repo: Path, *, quick: bool = False, medium: bool = False, depth
     params["ddpm"]["latent"].update({"stage1": str((repo / "artifacts" / "stage1").resolve()),
                                      "vqvae": str((repo / "artifacts" / "vqvae").resolve())})
     return params
+
+
+def bench_stem(depth: str | None, prediction: str | None) -> str:
+    """The report's file stem: ``bench_ddpm`` for the profile's settings, each override appended
+    (``bench_ddpm_linear_epsilon``: linear depth, ε-prediction)."""
+    return "_".join(["bench_ddpm", *([depth] if depth else []),
+                     *([{"epsilon": "epsilon", "v_prediction": "v"}[prediction]] if prediction else [])])
 
 
 def run_stages(root: Path, env: dict) -> dict[str, float]:
@@ -138,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--depth", choices=["linear", "log"],
                         help="the range image's depth encoding (default: the profile's); one given writes "
                              "bench_ddpm_<depth>.* beside the default's bench_ddpm.*")
+    parser.add_argument("--prediction", choices=["epsilon", "v_prediction"],
+                        help="what the U-Net outputs (default: the profile's); one given adds _epsilon or _v "
+                             "to the file names")
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
@@ -146,8 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     from typ.config import config_from_dict
 
     root, out = Path(args.root).resolve(), Path(args.out)
-    params = sweep_params(REPO, quick=args.quick, medium=args.medium, depth=args.depth)
-    stem = f"bench_ddpm_{args.depth}" if args.depth else "bench_ddpm"
+    params = sweep_params(REPO, quick=args.quick, medium=args.medium, depth=args.depth, prediction=args.prediction)
+    stem = bench_stem(args.depth, args.prediction)
     cfg = config_from_dict(params)
     latent = cfg.ddpm.latent  # the weights the latent route will load
     needed = [replica_dir(Path(latent.stage1), cfg.stage1.seed) / WEIGHTS,
@@ -171,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
               + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items())
               + ". Params: `bench/ddpm.py` SWEEP over the tiny profile (written to "
               f"`{args.root}/params.yaml`); range-image depth encoding: "
-              f"`{cfg.ddpm.range_image.depth}`.\n")
+              f"`{cfg.ddpm.range_image.depth}`; the U-Net predicts `{cfg.ddpm.prediction}`.\n")
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / f"{stem}.md", header + body)
     for name in ("pareto.png", "samples.png"):

@@ -7,13 +7,15 @@ sampler; generated images go back to points, which are what every metric compare
 
 - Scans: every agent's view of the ``train`` / ``test`` scenarios (``ego_only`` keeps the
   first agent only); each carries the simulator's per-point semantic labels.
-- Training (Ho et al.): ε-prediction, E_{t, ε} ||ε - ε_θ(√ᾱ_t x_0 + √(1 - ᾱ_t) ε, t)||², AdamW,
+- Training (Ho et al.): E_{t, ε} ||target - f_θ(√ᾱ_t x_0 + √(1 - ᾱ_t) ε, t)||² with the target
+  ε (``prediction: epsilon``, the paper's) or v = √ᾱ_t ε - √(1 - ᾱ_t) x_0 (``v_prediction``,
+  Salimans & Ho: the same minimiser, with more weight where x_0 is hard to read from x_t), AdamW,
   mirrored copies of every image (y -> -y), batches a pure function of (seed, step)
   (:func:`tasks.training.run_loop`: resumable, a NaN loss stops with the last good checkpoint).
   Weights: ``<out>/models/<name>/`` as :mod:`tasks.artifacts` writes them (the config with the
   run key: a model whose key matches is loaded, not retrained).
 - Sampling: :func:`models.samplers.sample` with a stock diffusers scheduler on the model's
-  own β; the generated set of a (model, sampler, steps) is cached under ``<out>/samples/``.
+  own β and ``prediction_type``; the generated set of a (model, sampler, steps) is cached under ``<out>/samples/``.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ from models.pixel_ddpm import PixelDiffusion
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_if_key, save_module
-from tasks.stage1 import noised_batch
+from tasks.stage1 import noised_batch, prediction_target
 from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything
 from typ import distributed
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
@@ -271,6 +273,8 @@ def model_key(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: in
     recipe = {"unet": as_dict(cfg.unet), "T": cfg.train_timesteps, "steps": cfg.steps, "batch": cfg.batch_size,
               "lr": cfg.lr, "schedule": run.schedule, "embedding": run.embedding, "rep": rep.describe(),
               "seed": seed, "data": data, "code": _MODEL_CODE}
+    if cfg.prediction != "epsilon":  # epsilon models keep the keys they were trained under
+        recipe["prediction"] = cfg.prediction
     return hash_obj(recipe)[:16]
 
 
@@ -283,6 +287,7 @@ class TrainedModel:
     train_timesteps: int
     seconds_training: float
     trained: bool
+    prediction: str = "epsilon"  #: what the model outputs: the sampler's prediction_type
 
 
 def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: int, pixels: torch.Tensor,
@@ -298,7 +303,7 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
     if found is not None:
         model, saved = found
         return TrainedModel(name, key, model, saved["schedule"], saved["train_timesteps"],
-                            saved["seconds_training"], trained=False)
+                            saved["seconds_training"], trained=False, prediction=saved.get("prediction", "epsilon"))
     seed_everything(seed)
     model = build(cfg, run, rep)
     abar = torch.from_numpy(alphas_cumprod(betas(run.schedule, cfg.train_timesteps))).float()
@@ -306,13 +311,13 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
 
     def step_fn(step: int) -> dict[str, float]:
         rng = batch_rng(seed, step)
-        _, t, eps, x_t = noised_batch(rng, pixels, abar, cfg.batch_size)
+        index, t, eps, x_t = noised_batch(rng, pixels, abar, cfg.batch_size)
         # dropout draws from torch's global generator: seed it per step, so a resumed run drops
         # the same units an uninterrupted one would have
         torch.manual_seed(int(rng.integers(2 ** 62)))
-        t, eps, x_t = distributed.local_batch(t, eps, x_t)
+        x0, t, eps, x_t = distributed.local_batch(pixels[index], t, eps, x_t)
         model.train()
-        loss = F.mse_loss(model(x_t, t), eps)
+        loss = F.mse_loss(model(x_t, t), prediction_target(cfg.prediction, eps, x0, abar[t.cpu()].to(x0.device)))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -329,8 +334,9 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
     seconds = round(time.perf_counter() - t0, 3)
     if distributed.is_main():
         save_module(folder, model, model.config, key=key, schedule=run.schedule, train_timesteps=cfg.train_timesteps,
-                    representation=rep.describe(), seconds_training=seconds)
-    return TrainedModel(name, key, model.eval(), run.schedule, cfg.train_timesteps, seconds, trained=True)
+                    prediction=cfg.prediction, representation=rep.describe(), seconds_training=seconds)
+    return TrainedModel(name, key, model.eval(), run.schedule, cfg.train_timesteps, seconds, trained=True,
+                        prediction=cfg.prediction)
 
 
 # ---------------------------------------------------------------- sampling
@@ -356,7 +362,8 @@ def generate(trained: TrainedModel, sampler: str, steps: int, n: int, seed: int,
     if path.exists():
         with np.load(path) as cached:
             return Generated(cached["pixels"], float(cached["seconds_per_sample"]))
-    scheduler = make_scheduler(sampler, betas(trained.schedule, trained.train_timesteps), **PIXEL_CLIP[sampler])
+    scheduler = make_scheduler(sampler, betas(trained.schedule, trained.train_timesteps),
+                               prediction_type=trained.prediction, **PIXEL_CLIP[sampler])
     generator = torch.Generator().manual_seed(seed)
     parts, t0 = [], time.perf_counter()
     shape = tuple(trained.model.config[k] for k in ("channels", "height", "width"))

@@ -104,6 +104,15 @@ def forward_process(z0: torch.Tensor, t: torch.Tensor, eps: torch.Tensor, abar: 
     return a.sqrt() * z0 + (1 - a).sqrt() * eps
 
 
+def prediction_target(prediction: str, eps: torch.Tensor, z0: torch.Tensor, abar_t: torch.Tensor) -> torch.Tensor:
+    """What a network that outputs ``prediction`` (diffusers' names) is trained to return for the
+    noised z_t = √ᾱ z_0 + √(1-ᾱ) ε: ``epsilon`` ε, ``sample`` z_0, ``v_prediction`` v = √ᾱ ε -
+    √(1-ᾱ) z_0. abar_t: (B,) ᾱ of each sample's t."""
+    a = abar_t.view(-1, *([1] * (z0.ndim - 1)))
+    return {"epsilon": lambda: eps, "sample": lambda: z0,
+            "v_prediction": lambda: a.sqrt() * eps - (1 - a).sqrt() * z0}[prediction]()
+
+
 def diffusion_loss(output: torch.Tensor, eps: torch.Tensor, z0: torch.Tensor, t: torch.Tensor, abar: torch.Tensor, *,
                    prediction: str, min_snr: float) -> torch.Tensor:
     """Eq. 4 for a network that outputs ``prediction`` (diffusers' names): ``epsilon`` (ε, Eq. 4
@@ -112,8 +121,7 @@ def diffusion_loss(output: torch.Tensor, eps: torch.Tensor, z0: torch.Tensor, t:
     ``min_snr`` > 0 each sample's squared error is weighted by Min-SNR-γ (Hang et al. 2023), in
     ε terms ``min(SNR, γ) / SNR``: ``min(SNR, γ)`` for ``sample``, ``min(SNR, γ) / (SNR + 1)`` for
     ``v_prediction`` (SNR = ᾱ / (1 - ᾱ)); 0 leaves the plain mean squared error."""
-    a = abar[t].to(output.device).view(-1, *([1] * (z0.ndim - 1)))
-    target = {"epsilon": eps, "sample": z0, "v_prediction": a.sqrt() * eps - (1 - a).sqrt() * z0}[prediction]
+    target = prediction_target(prediction, eps, z0, abar[t].to(output.device))
     per_sample = ((output.float() - target) ** 2).flatten(1).mean(1)
     if not min_snr:
         return per_sample.mean()

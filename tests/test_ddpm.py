@@ -12,6 +12,7 @@ from models.time_embedding import FourierTimeEmbedding
 from tasks import ddpm as stage
 from tasks.ddpm_metrics import score, set_stats
 from tasks.ddpm_report import targets
+from tasks.stage1 import prediction_target
 from tasks.lidar_features import FeatureNets, build as build_net, voxel_labels
 from tasks.training import TrainingDiverged
 from typ.config import config_from_dict
@@ -111,6 +112,7 @@ def test_paper_profile_expresses_table_one():
     ({"eval_samples": 1}, "ddpm.eval_samples"),
     ({"unet": {"dropout": 1.5}}, "ddpm.unet.dropout"),
     ({"range_image": {"depth": "sqrt"}}, "ddpm.range_image.depth"),
+    ({"prediction": "sample"}, "ddpm.prediction"),
 ])
 def test_bad_params_name_their_field(override, field):
     with pytest.raises(TypError, match=field.replace("[", r"\[").replace("]", r"\]").replace("*", r"\*")):
@@ -232,6 +234,72 @@ def test_sampling_is_seeded_and_cached(cfg, scans, tmp_path):
     assert all(len(c) >= 0 for c in stage.clouds(reps["bev"], a.pixels))
 
 
+class _Oracle(torch.nn.Module):
+    """The exact ``prediction`` of a data set holding one image: what a perfectly trained model returns."""
+
+    def __init__(self, x0: torch.Tensor, abar: torch.Tensor, prediction: str):
+        super().__init__()
+        self.x0, self.abar, self.prediction = x0, abar, prediction
+        self.config = dict(zip(("channels", "height", "width"), x0.shape[1:]))
+
+    def forward(self, x_t, t, cond=None, adapter_features=None):
+        a = self.abar[t].view(-1, 1, 1, 1)
+        eps = (x_t - a.sqrt() * self.x0) / (1 - a).sqrt()
+        return prediction_target(self.prediction, eps, self.x0.expand_as(x_t), self.abar[t])
+
+
+def test_v_target_inverts_to_the_clean_image_and_the_noise():
+    # z_t = √ᾱ x0 + √(1-ᾱ) ε and v = √ᾱ ε - √(1-ᾱ) x0 is a rotation: x0 = √ᾱ z_t - √(1-ᾱ) v,
+    # ε = √(1-ᾱ) z_t + √ᾱ v (Salimans & Ho §4); at ᾱ = 1/4: v = ε/2 - √3/2 x0
+    g = torch.Generator().manual_seed(0)
+    x0, eps = torch.randn(3, 2, 4, 4, generator=g), torch.randn(3, 2, 4, 4, generator=g)
+    abar = torch.tensor([0.25, 0.5, 0.99])
+    v = prediction_target("v_prediction", eps, x0, abar)
+    torch.testing.assert_close(v[0], 0.5 * eps[0] - math.sqrt(3) / 2 * x0[0])
+    a = abar.view(-1, 1, 1, 1)
+    z = a.sqrt() * x0 + (1 - a).sqrt() * eps
+    torch.testing.assert_close(a.sqrt() * z - (1 - a).sqrt() * v, x0)
+    torch.testing.assert_close((1 - a).sqrt() * z + a.sqrt() * v, eps)
+    assert prediction_target("epsilon", eps, x0, abar) is eps
+
+
+@pytest.mark.parametrize("prediction", ["epsilon", "v_prediction"])
+def test_generate_reads_what_the_model_predicts(prediction, tmp_path):
+    # an exact model of a one-image data set samples that image back in one step, under its own
+    # prediction type only (over many steps the last ones, at ᾱ near 1, would hide the mistake)
+    abar = torch.from_numpy(stage.alphas_cumprod(stage.betas("linear", 100))).float()
+    x0 = torch.linspace(-0.9, 0.9, 2 * 8 * 8).reshape(1, 2, 8, 8)
+    oracle = _Oracle(x0, abar, prediction)
+    right = stage.TrainedModel("o", prediction, oracle, "linear", 100, 0.0, False, prediction=prediction)
+    wrong = dataclasses.replace(right, key="w", prediction={"epsilon": "v_prediction",
+                                                            "v_prediction": "epsilon"}[prediction])
+    for sampler in ("ddim", "dpmsolver++"):
+        got = stage.generate(right, sampler, 1, 2, seed=0, out=tmp_path).pixels
+        np.testing.assert_allclose(got, np.repeat(x0.numpy(), 2, 0), atol=1e-4)
+        bad = stage.generate(wrong, sampler, 1, 2, seed=0, out=tmp_path).pixels
+        assert np.abs(bad - x0.numpy()).mean() > 0.1
+
+
+def test_v_prediction_trains_under_its_own_key_and_is_saved_with_it(cfg, scans, tmp_path):
+    reps = stage.representations(cfg)
+    run = cfg.configs[1]  # bev
+    x = stage.pixel_set(reps["bev"], scans, mirror=True)
+    data = stage.data_key(scans)
+    vcfg = dataclasses.replace(cfg, prediction="v_prediction")
+    ecfg = dataclasses.replace(cfg, prediction="epsilon")
+    assert stage.model_key(vcfg, run, reps["bev"], 0, data) != stage.model_key(ecfg, run, reps["bev"], 0, data)
+    v = stage.train_model(vcfg, run, reps["bev"], 0, x, data, out=tmp_path, log_fn=print)
+    assert v.prediction == "v_prediction"
+    folder = tmp_path / "models" / stage.model_name(run, 0)
+    assert json.loads((folder / "config.json").read_text())["prediction"] == "v_prediction"
+    again = stage.train_model(vcfg, run, reps["bev"], 0, x, data, out=tmp_path, log_fn=print)
+    assert not again.trained and again.prediction == "v_prediction"
+    # the same seed and batches with the epsilon target train different weights
+    e = stage.train_model(ecfg, run, reps["bev"], 0, x, data, out=tmp_path / "e", log_fn=print)
+    assert e.prediction == "epsilon"
+    assert any(not torch.equal(a, b) for a, b in zip(v.model.state_dict().values(), e.model.state_dict().values()))
+
+
 def _row(config, sampler, steps, jsd, frid, seconds, spread=0.8, rep="range", route="pixel"):
     return {"route": route, "representation": rep, "config": config, "sampler": sampler, "steps": steps,
             "seconds_per_sample": seconds, "jsd": jsd, "frid": frid, "mmd": [0, 0, 0], "fpvd": [0, 0, 0],
@@ -330,6 +398,11 @@ def test_the_bench_sweep_is_a_valid_config_covering_table_one():
     assert medium.ddpm.range_image == config_from_dict({"profile": "tiny"}).ddpm.range_image
     linear = config_from_dict(sweep_params(repo, medium=True, depth="linear")).ddpm
     assert linear.range_image == dataclasses.replace(medium.ddpm.range_image, depth="linear")
+    # --prediction overrides what the U-Net outputs and nothing else
+    eps = config_from_dict(sweep_params(repo, medium=True, prediction="epsilon")).ddpm
+    assert medium.ddpm.prediction == "v_prediction" and eps == dataclasses.replace(medium.ddpm, prediction="epsilon")
+    assert [bench.bench_stem(*a) for a in ((None, None), ("linear", None), ("linear", "epsilon"), (None, "v_prediction"))] \
+        == ["bench_ddpm", "bench_ddpm_linear", "bench_ddpm_linear_epsilon", "bench_ddpm_v"]
     full = config_from_dict(sweep_params(repo, quick=False)).ddpm
     seeds = {r.name: len(r.seeds) for r in full.configs}
     assert seeds == {"A": 3, "B": 3, "C": 1, "D": 1, "E*": 3, "F": 3, "G": 1, "H": 1, "J": 3}

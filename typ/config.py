@@ -898,6 +898,9 @@ class DdpmConfig:
     steps: int
     batch_size: int
     lr: float
+    #: what the U-Net outputs: ``epsilon`` (Ho et al., the paper's) or ``v_prediction`` (v = √ᾱ ε -
+    #: √(1-ᾱ) x_0, Salimans & Ho); the same minimiser, weighted differently over t (tasks/ddpm.py)
+    prediction: Literal["epsilon", "v_prediction"]
     checkpoint_every: int
     eval_samples: int
     bootstrap: int
