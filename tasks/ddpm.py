@@ -256,9 +256,11 @@ def data_key(scans: list[Scan]) -> list:
 # ---------------------------------------------------------------- models
 
 
-def model_name(run: DdpmRunConfig, seed: int) -> str:
-    """Folder / MLflow name of one trained model: shared by configurations that train the same."""
-    return f"{run.representation}-{run.schedule}-{run.embedding}-seed{seed}"
+def model_name(run: DdpmRunConfig, seed: int, prediction: str) -> str:
+    """Folder / MLflow name of one trained model: shared by configurations that train the same
+    (``-v`` marks a v-prediction model, so that it does not take an ε model's folder)."""
+    tag = {"epsilon": "", "v_prediction": "-v"}[prediction]
+    return f"{run.representation}-{run.schedule}-{run.embedding}{tag}-seed{seed}"
 
 
 def build(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation) -> PixelDiffusion:
@@ -296,7 +298,7 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
 
     pixels: (N, C, H, W) training images in [-1, 1] (mirrored copies included).
     """
-    name = model_name(run, seed)
+    name = model_name(run, seed, cfg.prediction)
     key = model_key(cfg, run, rep, seed, data)
     folder = out / "models" / name
     found = load_if_key(folder, PixelDiffusion.from_config, STAGE, key)
@@ -464,7 +466,7 @@ def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], t
         rep = reps[run.representation]
         stats, seconds = [], []
         for seed in seeds_of(cfg, run):
-            name = model_name(run, seed)
+            name = model_name(run, seed, cfg.prediction)
             if name not in trained:
                 trained[name] = train_model(cfg, run, rep, seed, training[run.representation], data, out=out,
                                             log_fn=log_fn)

@@ -94,7 +94,7 @@ def test_paper_profile_expresses_table_one():
     assert rows[("E*", "range")].samplers == (("ddpm", 800),) and c.samplers == (("ddpm", 1000),)
     assert c.range_image.azimuth_bins == 1024 and c.bev.grid.shape == (1024, 1024, 1) and c.seeds == (0, 1, 2)
     # E* and F train one model: the same name
-    assert stage.model_name(rows[("E*", "range")], 0) == stage.model_name(rows[("F", "range")], 0)
+    assert stage.model_name(rows[("E*", "range")], 0, "epsilon") == stage.model_name(rows[("F", "range")], 0, "epsilon")
 
 
 @pytest.mark.parametrize("override,field", [
@@ -187,7 +187,7 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     for k, v in first.model.state_dict().items():
         assert torch.equal(v, again.model.state_dict()[k])
     # tasks.artifacts' layout: what rebuilds the model under "config", the run's fields beside it
-    folder = tmp_path / "a" / "models" / stage.model_name(run, 0)
+    folder = tmp_path / "a" / "models" / stage.model_name(run, 0, cfg.prediction)
     saved = json.loads((folder / "config.json").read_text())
     assert saved["config"] == first.model.config and saved["key"] == first.key
     assert (saved["schedule"], saved["train_timesteps"]) == (run.schedule, cfg.train_timesteps)
@@ -202,7 +202,7 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     interrupted = dataclasses.replace(cfg, steps=4)
     stage.train_model(interrupted, run, reps[run.representation], 0, x, data, out=tmp_path / "b", log_fn=print)
     key = stage.model_key(cfg, run, reps[run.representation], 0, data)
-    name = stage.model_name(run, 0)
+    name = stage.model_name(run, 0, cfg.prediction)
     (tmp_path / "b" / "checkpoints" / name / stage.model_key(interrupted, run, reps[run.representation], 0, data)).rename(
         tmp_path / "b" / "checkpoints" / name / key)
     resumed_steps = []
@@ -290,7 +290,8 @@ def test_v_prediction_trains_under_its_own_key_and_is_saved_with_it(cfg, scans, 
     assert stage.model_key(vcfg, run, reps["bev"], 0, data) != stage.model_key(ecfg, run, reps["bev"], 0, data)
     v = stage.train_model(vcfg, run, reps["bev"], 0, x, data, out=tmp_path, log_fn=print)
     assert v.prediction == "v_prediction"
-    folder = tmp_path / "models" / stage.model_name(run, 0)
+    folder = tmp_path / "models" / stage.model_name(run, 0, "v_prediction")
+    assert folder.name.endswith("-v-seed0") and stage.model_name(run, 0, "epsilon") == folder.name.replace("-v-", "-")
     assert json.loads((folder / "config.json").read_text())["prediction"] == "v_prediction"
     again = stage.train_model(vcfg, run, reps["bev"], 0, x, data, out=tmp_path, log_fn=print)
     assert not again.trained and again.prediction == "v_prediction"
@@ -340,7 +341,7 @@ def test_table_scores_every_row_against_the_same_held_out_scans(cfg, scans, nets
     assert names == [("range", "full noise", ""), ("range", "real train views", ""),
                      ("bev", "full noise", ""), ("bev", "real train views", ""),
                      ("range", "J", "dpmsolver++"), ("bev", "J", "dpmsolver++")]
-    assert set(trained) == {f"{r}-time_dependent-fourier-seed{s}" for r in ("range", "bev") for s in (0, 1)}
+    assert set(trained) == {f"{r}-time_dependent-fourier-v-seed{s}" for r in ("range", "bev") for s in (0, 1)}
     for r in rows:
         # reference rows are sized like model rows: 2 noise sets (2 seeds), and as many disjoint sets of
         # 3 training scans as the 3 scans allow
@@ -410,4 +411,4 @@ def test_the_bench_sweep_is_a_valid_config_covering_table_one():
     assert ("E*", "ddpm", 800) in rows and ("F", "ddpm", 1000) in rows and ("J", "dpmsolver++", 20) in rows
     # E* is F sampled with fewer steps: one set of trained models
     by = {r.name: r for r in full.configs}
-    assert stage.model_name(by["E*"], 1) == stage.model_name(by["F"], 1)
+    assert stage.model_name(by["E*"], 1, "epsilon") == stage.model_name(by["F"], 1, "epsilon")

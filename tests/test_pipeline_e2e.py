@@ -406,10 +406,11 @@ def test_ddpm_stage_writes_its_table_models_and_report(project):
     assert dd["rows"]["voxel TYP stage 1 dpmsolver++-2"]["iou"] is not None
     assert dd["round_trip"]["range"]["max_error_over_bound"] <= 1.0
     assert set(dd["feature_nets"]) == {"range", "voxel"} and set(dd["models"]) == {
-        "range-time_dependent-fourier-seed0", "bev-linear-sinusoidal-seed0"}
+        "range-time_dependent-fourier-v-seed0", "bev-linear-sinusoidal-v-seed0"}
     for name in dd["models"]:
         folder = proj / "artifacts" / "ddpm" / "models" / name
-        assert read_config(folder, "ddpm")["train_timesteps"] == 1000 and read_weights(folder, "ddpm")
+        saved = read_config(folder, "ddpm")
+        assert saved["train_timesteps"] == 1000 and saved["prediction"] == "v_prediction" and read_weights(folder, "ddpm")
     text = (proj / "reports" / "ddpm.md").read_text()
     assert "Table II analogue: range image" in text and "Side by side with TYP's latent route" in text
     assert "compare rows within typ only" in text and "## Targets" in text
@@ -443,7 +444,7 @@ def test_stage_runs_are_in_mlflow_with_params_and_commit(project):
     owners = {"vqvae-x": "vqvae", "stage1-ldm": "stage1", "adapt-source-vq": "adapt",
               "stage2-adapter": "stage2", "selftrain-adapter": "selftrain",
               **{f"fusion-{m}": "fusion" for m in ("none", "early", "late", "attfuse", "v2xvit")},
-              "ddpm-frid-net": "ddpm", "ddpm-fpvd-net": "ddpm", "ddpm-range-time_dependent-fourier-seed0": "ddpm"}
+              "ddpm-frid-net": "ddpm", "ddpm-fpvd-net": "ddpm", "ddpm-range-time_dependent-fourier-v-seed0": "ddpm"}
     assert set(owners) <= set(logged), set(owners) - set(logged)
     for name, stage in owners.items():
         assert logged[name] <= stage_runs[stage], name
