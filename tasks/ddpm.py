@@ -542,7 +542,7 @@ def latent_route(cfg, root: Path, nets) -> list[dict]:
 
 DESCRIPTION = (
     "Aghanouri & Olaverri-Monreal's LiDAR DDPM rebuilt in typ: a lightweight pixel-space U-Net DDPM "
-    "(`models/pixel_ddpm.py`, ε-prediction, dropout 0.1, AdamW) on the equirectangular range image "
+    "(`models/pixel_ddpm.py`, {prediction}, dropout 0.1, AdamW) on the equirectangular range image "
     "(the target sensor's beams x azimuth bins, depth encoded to [-1, 1] {depth}) and on the BEV image "
     "(occupancy + height of the highest point per cell), trained on the simulated target domain. "
     "Rows are Table I configurations (schedule x time embedding; the paper's dataset column is the one "
@@ -550,6 +550,8 @@ DESCRIPTION = (
     "sampler clips x̂_0 to the image range at each step.")
 #: DESCRIPTION's words for each ``ddpm.range_image.depth``
 DEPTH_WORDS = {"linear": "linearly", "log": "on R2DM's log scale, log2(d + 1) / log2(max_range + 1)"}
+#: DESCRIPTION's words for each ``ddpm.prediction``
+PREDICTION_WORDS = {"epsilon": "ε-prediction", "v_prediction": "v-prediction, v = √ᾱ ε - √(1 - ᾱ) x_0"}
 
 
 def round_trips(reps: dict[str, Representation], scans: list[Scan]) -> dict:
@@ -560,7 +562,8 @@ def round_trips(reps: dict[str, Representation], scans: list[Scan]) -> dict:
 
 def context(cfg: DdpmConfig, train: list[Scan], test: list[Scan]) -> dict:
     """What the report says about the data and the estimator."""
-    return {"description": DESCRIPTION.format(depth=DEPTH_WORDS[cfg.range_image.depth]),
+    return {"description": DESCRIPTION.format(depth=DEPTH_WORDS[cfg.range_image.depth],
+                                                  prediction=PREDICTION_WORDS[cfg.prediction]),
             "train_scans": len(train), "test_scans": len(test),
             "train_split": cfg.train_split, "test_split": cfg.test_split, "ego_only": cfg.ego_only,
             "eval_samples": cfg.eval_samples, "bootstrap": cfg.bootstrap, "threads": torch.get_num_threads()}

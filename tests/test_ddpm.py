@@ -301,6 +301,16 @@ def test_v_prediction_trains_under_its_own_key_and_is_saved_with_it(cfg, scans, 
     assert any(not torch.equal(a, b) for a, b in zip(v.model.state_dict().values(), e.model.state_dict().values()))
 
 
+@pytest.mark.parametrize("prediction,depth,words", [("epsilon", "linear", ("ε-prediction", "linearly")),
+                                                     ("v_prediction", "log", ("v-prediction", "R2DM's log scale"))])
+def test_the_report_says_what_the_model_predicts_and_how_depth_is_encoded(cfg, scans, prediction, depth, words):
+    run = dataclasses.replace(cfg, prediction=prediction, range_image=dataclasses.replace(cfg.range_image, depth=depth))
+    text = stage.context(run, scans, scans)["description"]
+    assert all(w in text for w in words) and "{" not in text
+    other = {"epsilon": "v-prediction", "v_prediction": "ε-prediction"}[prediction]
+    assert other not in text
+
+
 def _row(config, sampler, steps, jsd, frid, seconds, spread=0.8, rep="range", route="pixel"):
     return {"route": route, "representation": rep, "config": config, "sampler": sampler, "steps": steps,
             "seconds_per_sample": seconds, "jsd": jsd, "frid": frid, "mmd": [0, 0, 0], "fpvd": [0, 0, 0],
