@@ -11,6 +11,7 @@ from models.pixel_ddpm import PixelDiffusion, fold, unfold
 from models.time_embedding import FourierTimeEmbedding
 from tasks import ddpm as stage
 from tasks.ddpm_metrics import score, set_stats
+from tasks import ddpm_report
 from tasks.ddpm_report import targets
 from tasks.stage1 import prediction_target
 from tasks.lidar_features import FeatureNets, build as build_net, voxel_labels
@@ -339,6 +340,47 @@ def test_targets_are_judged_from_intervals():
     assert {t["figure"]: t for t in targets(only_j)}[
         "range: J (time-dependent + Fourier) vs A/B (linear + sinusoidal/Fourier)"]["met"] is None
     assert not math.isnan(rows[0]["jsd"][0])
+
+
+def test_random_occupancy_keeps_each_views_rate_and_is_seeded():
+    truth = np.zeros((3, 8, 64, 64), bool)
+    truth[0, 1] = True                      # 1/8 of the view
+    truth[1, :, :32] = True                 # 1/2
+    drawn = stage.random_occupancy(truth, seed=4)
+    assert drawn.shape == truth.shape and drawn.dtype == bool
+    np.testing.assert_allclose(drawn.reshape(3, -1).mean(1), [1 / 8, 1 / 2, 0], atol=0.01)
+    assert not drawn[2].any()               # an empty view stays empty
+    assert (drawn[0] != truth[0]).any()     # the rate, not the layout
+    assert np.array_equal(drawn, stage.random_occupancy(truth, seed=4))
+    assert not np.array_equal(drawn, stage.random_occupancy(truth, seed=5))
+
+
+def test_metrics_a_row_leaves_out_are_dashes_and_nulls_not_zeros(tmp_path):
+    # the latent route's rows carry FRID and spread as None (stage.BLIND_ON_VOXELS)
+    blind = dict.fromkeys(stage.BLIND_ON_VOXELS)
+    rows = [_row("full noise", "", 0, [0.6, 0.58, 0.62], [0.9, 0.88, 0.92], 0.0, route="reference"),
+            _row("J", "ddpm", 1000, [0.20, 0.19, 0.21], [0.2, 0.19, 0.26], 6.0),
+            {**_row("random occupancy", "", 0, [0.37, 0.36, 0.38], None, 0.0, rep="voxel", route="reference"), **blind},
+            {**_row("TYP stage 1", "dpmsolver++", 10, [0.30, 0.29, 0.32], None, 0.2, rep="voxel", route="latent"),
+             **blind, "iou": 0.33}]
+    rows = [{**r, "empty": 0, "samples": [2]} for r in rows]
+    context = {"description": "d", "test_scans": 4, "test_split": "test", "train_scans": 4, "train_split": "train",
+               "ego_only": False, "eval_samples": 2, "bootstrap": 10, "threads": 1}
+    md = ddpm_report.report(rows, round_trips={}, feature_scores={}, context=context, plot="p.png", gallery="g.png")
+    head = [c.strip() for c in next(line for line in md.splitlines() if line.startswith("| row |")).split("|")]
+    cells = {line.split("|")[1].strip(): dict(zip(head, (c.strip() for c in line.split("|"))))
+             for line in md.splitlines() if line.startswith("| voxel ")}
+    assert set(cells) == {"voxel random occupancy", "voxel TYP stage 1 dpmsolver++-10"}
+    for row in cells.values():
+        assert row["FRID† ↓"] == "–" and row["spread"] == "–"
+    assert cells["voxel TYP stage 1 dpmsolver++-10"]["JSD ↓"] == "0.300 [0.290, 0.320]"
+    assert cells["voxel TYP stage 1 dpmsolver++-10"]["IoU"] == "0.330"
+    assert "Table II analogue: voxel" not in md     # the ceiling row belongs to the side by side only
+    entry = ddpm_report.metrics_of(rows, {}, {}, {}, {})["rows"]["voxel TYP stage 1 dpmsolver++-10"]
+    assert entry["frid"] is None and entry["spread"] is None and entry["jsd"]["value"] == 0.30
+    json.dumps(entry, allow_nan=False)
+    ddpm_report.pareto_plot(rows, tmp_path / "p.png")  # the FRID panel draws the pixel rows only
+    assert (tmp_path / "p.png").stat().st_size > 10_000
 
 
 def test_table_scores_every_row_against_the_same_held_out_scans(cfg, scans, nets, tmp_path):

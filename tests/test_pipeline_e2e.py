@@ -398,10 +398,11 @@ def test_ddpm_stage_writes_its_table_models_and_report(project):
     assert dd["test_scans"] == 4 and dd["train_scans"] == 4
     assert {"range full noise", "range real train views", "range J ddpm-20", "range J dpmsolver++-3",
             "bev full noise", "bev real train views", "bev A dpmsolver++-3",
-            "voxel TYP stage 1 dpmsolver++-2"} == set(dd["rows"])
+            "voxel random occupancy", "voxel TYP stage 1 dpmsolver++-2"} == set(dd["rows"])
     for name, row in dd["rows"].items():
+        blind = ("frid",) if name.startswith("voxel ") else ()  # the range network cannot rank voxel clouds
         for m in ("jsd", "mmd", "frid", "fpvd"):
-            assert row[m]["low"] <= row[m]["high"], (name, m)
+            assert (row[m] is None) if m in blind else row[m]["low"] <= row[m]["high"], (name, m)
         assert 0.0 <= row["jsd"]["value"] <= 0.833  # sqrt(ln 2) at most
     assert dd["rows"]["voxel TYP stage 1 dpmsolver++-2"]["iou"] is not None
     assert dd["round_trip"]["range"]["max_error_over_bound"] <= 1.0
