@@ -318,6 +318,10 @@ def _row(config, sampler, steps, jsd, frid, seconds, spread=0.8, rep="range", ro
             "spread": spread, "schedule": "", "embedding": "", "iou": None}
 
 
+def by_figure(rows):
+    return {t["figure"]: t for t in targets(rows)}
+
+
 def test_targets_are_judged_from_intervals():
     rows = [_row("full noise", "", 0, [0.6, 0.58, 0.62], [900, 880, 920], 0.0, route="reference"),
             _row("A", "ddpm", 1000, [0.30, 0.28, 0.32], [300, 290, 310], 6.0),
@@ -336,6 +340,14 @@ def test_targets_are_judged_from_intervals():
     assert targets(rows)[0]["met"] is False
     rows[-1]["jsd"] = [0.27, 0.26, 0.28]  # +8 %
     assert {t["figure"]: t for t in targets(rows)}["range: ramp at 800 steps (E*) vs 1000 (F)"]["met"] is False
+    # a respaced DDPM at <= 50 steps is a fast sampler like any other
+    rows[4]["jsd"] = [0.26, 0.25, 0.27]  # J's DPM-Solver++ 20 now +30 %
+    assert by_figure(rows)["range J: fast solver ≤ 50 steps vs DDPM-1000"]["met"] is False
+    fifty = rows + [_row("J", "ddpm", 50, [0.204, 0.19, 0.22], [205, 195, 215], 0.3)]
+    j_fast = by_figure(fifty)["range J: fast solver ≤ 50 steps vs DDPM-1000"]
+    assert j_fast["met"] is True and j_fast["measured"].startswith("ddpm-50 JSD 0.204")   # +2 %, 20x
+    assert by_figure(fifty)["range: J (time-dependent + Fourier) vs A/B (linear + sinusoidal/Fourier)"]["measured"] \
+        == targets(rows)[0]["measured"]  # J's DDPM-1000 row is still the one compared with A and B
     only_j = [r for r in rows if r["config"] in ("J", "full noise")]
     assert {t["figure"]: t for t in targets(only_j)}[
         "range: J (time-dependent + Fourier) vs A/B (linear + sinusoidal/Fourier)"]["met"] is None
