@@ -85,9 +85,10 @@ QUICK = {
     "latent": {"samplers": [["dpmsolver++", 10]], "views": 3},
 }
 #: The Table II targets at a CPU budget where the range models leave the noise row: J and A over
-#: 3 seeds (DDPM-1000 and DPM-Solver++ 20 / 50; J also UniPC 20 and DDIM 50), B, and F with E* (DDPM-1000 / DDPM-800 of the same
-#: model) over 1, 2000 training steps each, 16 samples per set (a set's JSD depends on its size:
-#: 4 real scans are no closer to the held-out ones than 4 noise images), on the tiny pipeline's data
+#: 3 seeds (DDPM-1000 and DPM-Solver++ 20 / 50; J also UniPC 20, DDIM 50 and a respaced DDPM-50),
+#: B, and F with E* (DDPM-1000 / DDPM-800 of the same model) over 1, 2000 training steps each, 16
+#: samples per set (a set's JSD depends on its size: 4 real scans are no closer to the held-out
+#: ones than 4 noise images), on the tiny pipeline's data
 MEDIUM = {
     "configs": [_config("J", "time_dependent", "fourier",
                         samplers=[["ddpm", 1000], ["dpmsolver++", 20], ["dpmsolver++", 50], ["unipc", 20], ["ddim", 50],
