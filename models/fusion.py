@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.box_coder import AnchorBoxCoder
-from models.pointpillars import AnchorHead, PointPillars, pillars_to_bev
+from models.pointpillars import PointPillars, pillars_to_bev
 from models.warp import warp_bev, warp_valid_mask
 from typ.errors import TypError
 from typ.geometry import transform_points
@@ -359,7 +359,7 @@ class V2XViT(FusionModule):
                  window_heads: Sequence[int] = (16, 8, 4), window_dim_heads: Sequence[int] = (16, 32, 64),
                  mlp_dim: int = 256, dropout: float = 0.3, num_agent_types: int = 2, rte_ratio: int = 2,
                  max_delay: int = 100):
-        """detector: supplies the pillar net and backbone (its head is not used); dim: transformer width (even);
+        """detector: supplies the pillar net, the backbone and its head's kind (``head.like``); dim: width (even);
         shrink_stride: stride of the shrink conv; depth: encoder layers; heads / dim_head: HMSA;
         window_sizes / window_heads / window_dim_heads: one window-attention branch each; mlp_dim: MLP width;
         dropout: in attention and MLP; num_agent_types: 2 = vehicle (0) / RSU (1);
@@ -386,7 +386,8 @@ class V2XViT(FusionModule):
                                                       window_sizes=window_sizes, dropout=dropout),
             nn.LayerNorm(dim), nn.Sequential(nn.Linear(dim, mlp_dim), nn.GELU(), nn.Dropout(dropout),
                                              nn.Linear(mlp_dim, dim), nn.Dropout(dropout))]) for _ in range(depth))
-        self.head = AnchorHead(in_channels=dim, num_anchors=detector.num_anchors, num_dir_bins=detector.num_dir_bins)
+        # the detector head's kind (anchors, or models.ssc's occupancy) on the transformer's width and stride
+        self.head = detector.head.like(in_channels=dim, feature_stride=self.feature_stride)
 
     def forward(self, pillars: dict, *, agent_mask: torch.Tensor, transforms, agent_types: torch.Tensor | None = None,
                 time_delay: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -427,10 +428,36 @@ class V2XViT(FusionModule):
         return _dense_map_bytes([(self.dim, self.ny // self.feature_stride, self.nx // self.feature_stride)],
                                 self.message_bits)
 
+    def keeps_single_map(self, single: PointPillars) -> bool:
+        """Whether the shrunk map has the single-agent backbone map's width and stride, so that the
+        single-agent head fits on the transformer's output."""
+        return (self.feature_stride == single.feature_stride and self.dim == single.backbone.out_channels
+                and all(a.shape == b.shape for a, b in zip(self.head.state_dict().values(),
+                                                           single.head.state_dict().values())))
+
     def warm_start(self, single: PointPillars) -> None:
-        """The pillar net and backbone; the head sits on the transformer's width and stays fresh."""
+        """The pillar net and backbone. Where the shrunk map keeps the single-agent map's width and
+        stride (:meth:`keeps_single_map`), the module starts as the single-agent network on the ego:
+        its head copied, the shrink convs the identity (the backbone map is >= 0, after a ReLU), the
+        delay encoding and every residual branch's last layer zero (ReZero / ControlNet's zero
+        init: the transformer starts as the identity and learns the fusion). Otherwise the shrink
+        convs, the transformer and the head (on the transformer's width) stay fresh, as OpenCOOD's."""
         self.pillar_net.load_state_dict(single.pillar_net.state_dict())
         self.backbone.load_state_dict(single.backbone.state_dict())
+        if not self.keeps_single_map(single):
+            return
+        self.head.load_state_dict(single.head.state_dict())
+        with torch.no_grad():
+            for conv in (self.shrink[0], self.shrink[2]):
+                conv.weight.zero_()
+                conv.weight[:, :, 1, 1] = torch.eye(self.dim)
+                conv.bias.zero_()
+            last = [self.rte]
+            for _, agent_att, _, window_att, _, mlp in self.layers:
+                last += [*agent_att.out.layers, *(branch.out[0] for branch in window_att.branches), mlp[3]]
+            for layer in last:
+                layer.weight.zero_()
+                layer.bias.zero_()
 
 
 # ------------------------------------------------------------------ registry

@@ -224,6 +224,12 @@ class AnchorHead(nn.Module):
         self.dir = nn.Conv2d(in_channels, num_dir_bins * num_anchors, 1) if num_dir_bins else None
         nn.init.constant_(self.cls.bias, -float(np.log((1 - prior) / prior)))
 
+    def like(self, *, in_channels: int, feature_stride: int) -> "AnchorHead":
+        """A fresh head of the same anchors and direction bins on a ``in_channels`` map (the anchors
+        are laid per cell of that map, so ``feature_stride`` changes nothing here)."""
+        return AnchorHead(in_channels=in_channels, num_anchors=self.cls.out_channels,
+                          num_dir_bins=0 if self.dir is None else self.dir.out_channels // self.cls.out_channels)
+
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         """(B, C, H, W) -> {``psm``, ``rm``[, ``dm``]}."""
         out = {"psm": self.cls(x), "rm": self.reg(x)}

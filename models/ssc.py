@@ -6,7 +6,8 @@ pointpillars.py`` on the SSC grid (pillars of 0.78125 m over x, y in [-50, 50) m
 so its BEV has the grid's 128 x 128 cells) and puts an :class:`OccupancyHead` where its anchor
 head was. The fusion modules of ``models/fusion.py`` that call ``detector.head`` (``NoFusion``,
 ``EarlyFusion``, ``LateFusion``, ``AttFuse``) then output ``{"occ": (B, K, X, Y, Z) logits}``
-unchanged. Late fusion's map merge is :func:`merge_max_confidence` after :func:`warp_to_ego`.
+unchanged; ``V2XViT`` builds its head with the detector head's :meth:`OccupancyHead.like` on its
+transformer's width and stride. Late fusion's map merge is :func:`merge_max_confidence` after :func:`warp_to_ego`.
 """
 from __future__ import annotations
 
@@ -42,6 +43,12 @@ class OccupancyHead(nn.Module):
         self.up = nn.Sequential(nn.ConvTranspose2d(in_channels, hidden, feature_stride, stride=feature_stride, bias=False),
                                 nn.BatchNorm2d(hidden, eps=1e-3, momentum=0.01), nn.ReLU())
         self.out = nn.Conv2d(hidden, self.num_heights * self.num_classes, 1)
+
+    def like(self, *, in_channels: int, feature_stride: int) -> "OccupancyHead":
+        """A fresh head of the same classes, heights and width on a ``in_channels`` map at
+        ``feature_stride`` (V2X-ViT's shrunk map)."""
+        return OccupancyHead(in_channels=in_channels, num_classes=self.num_classes, num_heights=self.num_heights,
+                             feature_stride=feature_stride, hidden=self.out.in_channels)
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         logits = self.out(self.up(x))                              # (B, Z*K, Y, X)

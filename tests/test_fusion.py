@@ -224,6 +224,30 @@ def test_hetero_attention_matches_its_pairwise_definition():
     assert torch.allclose(out, att.out(expected.reshape(2, 3, 2, 2, 6), types), atol=1e-5)
 
 
+def test_v2xvit_warm_started_on_the_single_map_starts_as_no_fusion_and_learns():
+    """With the shrink keeping the backbone map's width and stride, a warm-started V2X-ViT is the
+    single-agent detector on the ego's cloud, whatever the others send; its zeroed residual branches
+    get gradients. On OpenCOOD's stride-2 shrink the head stays fresh."""
+    det = _detector().eval()
+    module = _v2xvit(det, dim=det.backbone.out_channels, shrink_stride=1)
+    assert module.keeps_single_map(det)
+    module.warm_start(det)
+    module.eval()
+    fused, alone = _run(module, _clouds()), _run(NoFusion(detector=det), _clouds())
+    for key in ("psm", "rm", "dm"):
+        torch.testing.assert_close(fused[key], alone[key], atol=1e-5, rtol=1e-5)
+    module.train()
+    sum((v ** 2).mean() for v in _run(module, _clouds()).values()).backward()
+    _, agent_att, _, window_att, _, mlp = module.layers[0]
+    for layer in (agent_att.out.layers[0], window_att.branches[0].out[0], mlp[3], module.rte):
+        assert layer.weight.grad.abs().sum() > 0
+    fresh = _v2xvit(det)                           # stride 2, width 16 of a 16-wide map: not the single map
+    assert not fresh.keeps_single_map(det)
+    head = {k: v.clone() for k, v in fresh.head.state_dict().items()}
+    fresh.warm_start(det)
+    assert all(torch.equal(v, fresh.head.state_dict()[k]) for k, v in head.items())
+
+
 def test_v2xvit_pads_maps_that_windows_do_not_tile():
     det = _detector()
     module = _v2xvit(det, window_sizes=(3,), window_heads=(2,), window_dim_heads=(8,)).eval()
