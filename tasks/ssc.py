@@ -11,9 +11,11 @@ the fusion-method registry of ``models/fusion.py``, as the detectors are:
   own map. No fusion runs it on the ego's cloud; late fusion runs it on every agent in range and
   merges the maps in the ego frame, keeping per voxel the most confident agent
   (:func:`models.ssc.merge_max_confidence`), as V2VSSC does.
-- ``early`` and ``attfuse``: :class:`~models.fusion.EarlyFusion` (the agents' clouds merged in the
-  ego frame) and :class:`~models.fusion.AttFuse` (features warped and attended in the ego frame),
-  warm-started from the single-agent network and trained on the ego's map.
+- ``early``, ``attfuse`` and ``v2xvit``: :class:`~models.fusion.EarlyFusion` (the agents' clouds
+  merged in the ego frame), :class:`~models.fusion.AttFuse` (features warped and attended in the
+  ego frame) and :class:`~models.fusion.V2XViT` (its transformer, the block ``ssc.v2xvit``, on the
+  backbone's features, with an occupancy head on its width), warm-started from the single-agent
+  network and trained on the ego's map.
 
 Loss: cross-entropy weighted ``1 / ln(eps + share)`` (:func:`models.ssc.class_weights`, the shares
 of the training maps' classes), Adam with cosine decay, one view or sample a step in a seeded order.
@@ -28,14 +30,15 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from models.fusion import FusionModule, NoFusion, build, compressed, merge_agent_points
+from models.fusion import FusionModule, NoFusion, build, compressed, get_method, merge_agent_points
+from models.pointpillars import PointPillars
 from models.ssc import SSC_LIDAR_RANGE, class_weights, merge_max_confidence, ssc_detector, warp_to_ego
 from tasks.artifacts import load_if_key, save_module
 from tasks.fusion_data import FusionDataset, FusionSample, unavailable
@@ -49,9 +52,10 @@ from typ.ssc import SSC_GRID, occupancy_path, read_occupancy
 
 STAGE = "ssc"
 #: the network each method runs (no and late fusion share the single-agent one)
-NETWORK = {"none": "single", "early": "early", "late": "single", "attfuse": "attfuse"}
+NETWORK = {"none": "single", "early": "early", "late": "single", "attfuse": "attfuse", "v2xvit": "v2xvit"}
 #: display names of the methods, V2VSSC Table I's rows
-DISPLAY = {"none": "No Fusion", "early": "Early Fusion", "late": "Late Fusion", "attfuse": "Intermediate (AttFuse)"}
+DISPLAY = {"none": "No Fusion", "early": "Early Fusion", "late": "Late Fusion", "attfuse": "Intermediate (AttFuse)",
+           "v2xvit": "Intermediate (V2X-ViT)"}
 #: the figures scored, each with an interval: geometric, semantic and per class
 FIGURES = ("iou", "miou", "ciou", "precision", "recall", *(f"iou_{c}" for c in SSC_CLASSES[1:]))
 N_CLASSES = len(SSC_CLASSES)
@@ -89,23 +93,45 @@ def model_kwargs(block: SscConfig) -> dict:
 # ---------------------------------------------------------------- training data
 
 
+#: the label ignored by the loss (voxels a generated view is not scored on)
+IGNORE = 255
+#: BEV cells (0.78 m) around a generated view's points that its map is scored on (``footprint``)
+FOOTPRINT_CELLS = 2
+
+
+def footprint(cloud: np.ndarray, cells: int = FOOTPRINT_CELLS) -> np.ndarray:
+    """(X, Y) bool: the map columns within ``cells`` columns of one of ``cloud``'s points (own frame)."""
+    from scipy import ndimage
+
+    idx = np.floor((np.asarray(cloud[:, :2], dtype=np.float64) - SSC_GRID.lower[:2]) / SSC_GRID.voxel[:2]).astype(int)
+    shape = SSC_GRID.shape[:2]
+    keep = np.all((idx >= 0) & (idx < np.asarray(shape)), axis=1)
+    hit = np.zeros(shape, dtype=bool)
+    hit[idx[keep, 0], idx[keep, 1]] = True
+    disc = np.hypot(*np.mgrid[-cells:cells + 1, -cells:cells + 1]) <= cells
+    return ndimage.binary_dilation(hit, structure=disc)
+
+
 @dataclass
 class TrainingSet:
-    """What the networks learn from: every agent's (cloud, own map) and every sample with its ego map."""
+    """What the networks learn from: every agent's (cloud, own map) and every sample with its ego
+    map; ``ego[k]``: view ``k`` is a sample's ego (its cloud is never generated)."""
 
     views: list[tuple[np.ndarray, np.ndarray]]
     samples: list[FusionSample]
     ego_maps: list[np.ndarray]
     key: str = ""
+    ego: list[bool] = field(default_factory=list)
 
     @classmethod
     def read(cls, ds: FusionDataset) -> "TrainingSet":
-        views, samples, maps = [], [], []
+        views, samples, maps, ego = [], [], [], []
         ident = []
         for i in range(len(ds)):
             sample = ds[i]
             own = sample_maps(ds, i, sample)
             views += list(zip(sample.clouds, own))
+            ego += [j == 0 for j in range(len(own))]
             samples.append(sample)
             maps.append(own[0])
             ident.append((sample.scenario, sample.timestamp, list(sample.agent_ids), [len(c) for c in sample.clouds],
@@ -113,11 +139,33 @@ class TrainingSet:
                           [int(np.count_nonzero(m)) for m in own], [int(m.sum(dtype=np.int64)) for m in own]))
         if not views:
             raise TypError(ds.root, "samples", "at least one training sample", "none")
-        return cls(views, samples, maps, hash_obj(ident)[:16])
+        return cls(views, samples, maps, hash_obj(ident)[:16], ego)
 
     def class_counts(self) -> np.ndarray:
-        """Voxels of each class over every agent's map."""
-        return sum(np.bincount(m.reshape(-1), minlength=N_CLASSES) for _, m in self.views)
+        """Voxels of each class over every agent's map (ignored voxels left out)."""
+        return sum(np.bincount(m.reshape(-1), minlength=IGNORE + 1)[:N_CLASSES] for _, m in self.views)
+
+    def with_generated_views(self, mode: str) -> "TrainingSet":
+        """What the single-agent network learns of a set whose cooperating clouds are generated
+        (``ssc.generated_views``): ``all`` every view on its whole map; ``footprint`` the generated
+        views scored only on the columns near their points (:func:`footprint`; the rest
+        :data:`IGNORE`); ``ego`` the ego views only. The samples (the fused networks') are kept."""
+        if mode == "all":
+            return self
+        if mode not in ("ego", "footprint"):
+            raise TypError("tasks.ssc.TrainingSet", "generated_views", "all, footprint or ego", mode)
+        views, ego = [], []
+        for (c, m), e in zip(self.views, self.ego):
+            seen = footprint(c) if not e and mode == "footprint" else None
+            if e:
+                views.append((c, m))
+            elif seen is not None and seen.any():   # a generated view with no point in the grid: dropped
+                views.append((c, np.where(seen[:, :, None], m, np.uint8(IGNORE))))
+            else:
+                continue
+            ego.append(e)
+        extra = {"footprint_cells": FOOTPRINT_CELLS} if mode == "footprint" else {}
+        return TrainingSet(views, self.samples, self.ego_maps, hash_obj([self.key, mode, extra])[:16], ego)
 
 
 def _fit(model: FusionModule, step: Callable[[int], tuple[torch.Tensor, np.ndarray]], n_items: int, *, steps: int,
@@ -132,7 +180,7 @@ def _fit(model: FusionModule, step: Callable[[int], tuple[torch.Tensor, np.ndarr
     model.train()
     for n, k in enumerate(order):
         logits, labels = step(int(k))
-        loss = F.cross_entropy(logits, torch.as_tensor(labels, dtype=torch.long)[None], weight=w)
+        loss = F.cross_entropy(logits, torch.as_tensor(labels, dtype=torch.long)[None], weight=w, ignore_index=IGNORE)
         if not torch.isfinite(loss):
             raise TypError(f"{STAGE}:{name}", "loss", "a finite training loss", f"{loss.item()} at step {n}")
         opt.zero_grad()
@@ -161,9 +209,9 @@ def train_single(data: TrainingSet, *, steps: int, seed: int, lr: float, model_k
     return model, _fit(model, step, len(data.views), steps=steps, seed=seed, lr=lr, weights=weights, name="single")
 
 
-def _inputs(module: FusionModule, method: str, sample: FusionSample) -> tuple[dict, dict]:
-    """(pillars, forward keywords) of one sample for ``method``'s module (batch of one)."""
-    det = module.detector
+def _inputs(det: PointPillars, method: str, sample: FusionSample) -> tuple[dict, dict]:
+    """(pillars, forward keywords) of one sample for ``method``'s module (batch of one), pillarized by
+    ``det`` (the single-agent network's detector: every network shares its pillar grid)."""
     if method == "early":
         return det.pillarize([merge_agent_points(sample.clouds, sample.transforms)]), \
             {"agent_mask": torch.ones(1, 1, dtype=torch.bool)}
@@ -175,17 +223,18 @@ def _inputs(module: FusionModule, method: str, sample: FusionSample) -> tuple[di
 
 
 def train_fused(method: str, data: TrainingSet, single: NoFusion, *, steps: int, seed: int, lr: float,
-                weights: np.ndarray) -> tuple[FusionModule, list[float]]:
-    """Early fusion or AttFuse from the single-agent network, one sample (ego map) a step."""
+                weights: np.ndarray, options: dict | None = None) -> tuple[FusionModule, list[float]]:
+    """Early fusion, AttFuse or V2X-ViT from the single-agent network, one sample (ego map) a step;
+    ``options``: the module's extra arguments (V2X-ViT's transformer)."""
     if NETWORK.get(method, "single") == "single":
-        raise TypError("tasks.ssc.train_fused", "method", "early or attfuse (a network trained on the ego's map)",
-                       method)
+        raise TypError("tasks.ssc.train_fused", "method",
+                       "early, attfuse or v2xvit (a network trained on the ego's map)", method)
     seed_everything(seed)
-    module = build(method, copy.deepcopy(single.detector))
+    module = build(method, copy.deepcopy(single.detector), options)
     module.warm_start(single.detector)
 
     def step(k: int):
-        pillars, kw = _inputs(module, method, data.samples[k])
+        pillars, kw = _inputs(single.detector, method, data.samples[k])
         return module(pillars, **kw)["occ"], data.ego_maps[k]
 
     return module, _fit(module, step, len(data.samples), steps=steps, seed=seed, lr=lr, weights=weights, name=method)
@@ -204,15 +253,27 @@ class SscNetworks:
         return self.networks[NETWORK[method]]
 
 
-def _network_config(name: str, model_kw: dict) -> dict:
-    return {"network": name, "model": {k: list(v) if isinstance(v, tuple) else v for k, v in model_kw.items()}}
+def _lists(d: dict) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def network_options(block: SscConfig, name: str) -> dict | None:
+    """The extra module arguments of network ``name`` (the config block the registry names: V2X-ViT's
+    ``v2xvit``), as JSON; None where the module takes none."""
+    option_block = None if name == "single" else get_method(name).options
+    return None if option_block is None else _lists(asdict(getattr(block, option_block)))
+
+
+def _network_config(name: str, model_kw: dict, options: dict | None = None) -> dict:
+    config = {"network": name, "model": _lists(model_kw)}
+    return config if options is None else {**config, "options": options}
 
 
 def _build(config: dict) -> FusionModule:
     kw = {k: tuple(v) if isinstance(v, list) else v for k, v in config["model"].items()}
     name = config["network"]
     det = ssc_detector(**kw)
-    return NoFusion(detector=det) if name == "single" else build(name, det)
+    return NoFusion(detector=det) if name == "single" else build(name, det, config.get("options"))
 
 
 def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: int, out: Path,
@@ -222,15 +283,17 @@ def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: i
     is there (a finished or earlier run), trained and saved otherwise."""
     model_kw = model_kwargs(block)
     needed = ["single"] + [NETWORK[m] for m in block.methods if NETWORK[m] != "single"]
+    options = {name: network_options(block, name) for name in needed}
     result = SscNetworks(seed, {})
     base = {"data": data.key, "model": _network_config("single", model_kw)["model"], "seed": seed,
             "eps": block.class_weight_eps}
     for name in dict.fromkeys(needed):
         if name == "single":
             key = hash_obj({**base, "steps": block.steps, "lr": block.lr})[:16]
-        else:
+        else:   # a module without options keeps the key it had before options were keyed
+            extra = {} if options[name] is None else {"options": options[name]}
             key = hash_obj({**base, "network": name, "init": result.keys["single"], "steps": block.warm_start_steps,
-                            "lr": block.finetune_lr, "comm_range": block.comm_range})[:16]
+                            "lr": block.finetune_lr, "comm_range": block.comm_range, **extra})[:16]
         folder = out / "models" / data_name / f"{name}-seed{seed}"
         loaded = load_if_key(folder, _build, STAGE, key)
         if loaded is not None:
@@ -243,8 +306,8 @@ def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: i
                                               weights=weights)
             else:
                 module, losses = train_fused(name, data, result.networks["single"], steps=block.warm_start_steps,
-                                             seed=seed, lr=block.finetune_lr, weights=weights)
-            save_module(folder, module, _network_config(name, model_kw), key=key, seed=seed,
+                                             seed=seed, lr=block.finetune_lr, weights=weights, options=options[name])
+            save_module(folder, module, _network_config(name, model_kw, options[name]), key=key, seed=seed,
                         losses=[round(v, 6) for v in losses])
             result.networks[name], result.losses[name] = module, losses
         result.keys[name] = key
@@ -280,7 +343,7 @@ def predict(nets: SscNetworks, sample: FusionSample, method: str, *, bits: int |
         warped = [warp_to_ego(labels[j], conf[j], sample.transforms[j], **kw) for j in range(len(clouds))]
         merged, _ = merge_max_confidence(torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped]))
         return merged.numpy().astype(np.uint8)
-    pillars, kw = _inputs(module, method, sample)
+    pillars, kw = _inputs(nets.networks["single"].detector, method, sample)
     with compressed(module, bits):
         logits = module(pillars, **kw)["occ"]
     return logits[0].argmax(0).numpy().astype(np.uint8)
@@ -394,7 +457,8 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
         gen_root = Path(root) / block.generated / block.domain / block.train_split
         reason = unavailable(gen_root)
         if reason is None:
-            gen = TrainingSet.read(ssc_dataset(sim / block.train_split, comm_range=block.comm_range, cav_root=gen_root))
+            gen = TrainingSet.read(ssc_dataset(sim / block.train_split, comm_range=block.comm_range,
+                                               cav_root=gen_root)).with_generated_views(block.generated_views)
             gen_trained = [train_seed(block, gen, weights, seed, out, log, data_name="generated")
                            for seed in block.training_seeds]
             losses.update({f"generated/{n}-seed{t.seed}": t.losses[n] for t in gen_trained for n in t.losses})
@@ -424,7 +488,7 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
 
 
 def robustness_curves(block: SscConfig, nets: SscNetworks, test_ds: FusionDataset) -> dict:
-    """mIoU / IoU of every method against pose noise, delay and (AttFuse) message bits, first seed, on
+    """mIoU / IoU of every method against pose noise, delay and (AttFuse, V2X-ViT) message bits, first seed, on
     the test frames t >= the longest delay; each level a bootstrap interval over scenarios (no fusion:
     the reference, unperturbed)."""
     rob = block.robustness
@@ -457,13 +521,16 @@ def robustness_curves(block: SscConfig, nets: SscNetworks, test_ds: FusionDatase
             curves[method][sweep] = cells
             if sweep == "delay_ms" and method != "none":
                 applied = [c["applied_delay_ms"] for c in cells]
-    bits = {}
-    if "attfuse" in methods:
-        for b in rob.quantization_bits:
-            conf, info = confusions(nets, frames, "attfuse", bits=b)
-            bits[b] = {**intervals(conf, n_boot=block.bootstrap, seed=block.seed, figures=HEADLINE_FIGURES), **info}
+    bits: dict[str, dict] = {}
+    for method in methods:          # the methods whose cooperating agents send features
+        if get_method(method).message == "features":
+            bits[method] = {}
+            for b in rob.quantization_bits:
+                conf, info = confusions(nets, frames, method, bits=b)
+                bits[method][str(b)] = {**intervals(conf, n_boot=block.bootstrap, seed=block.seed,
+                                                    figures=HEADLINE_FIGURES), **info}
     return {"levels": levels, "methods": curves, "applied_delay_ms": applied or list(map(float, rob.delay_ms)),
-            "quantization": {str(b): v for b, v in bits.items()}}
+            "quantization": bits}
 
 
 def metrics_of(results: dict, seconds: float) -> dict:
@@ -489,7 +556,8 @@ def metrics_of(results: dict, seconds: float) -> dict:
               for m, entry in rob["methods"].items()}
     return {"tables": tables, "targets": targets, "robustness_miou": curves, "levels": rob["levels"],
             "applied_delay_ms": rob["applied_delay_ms"],
-            "quantization_miou": {b: v["miou"]["value"] for b, v in rob["quantization"].items()},
+            "quantization_miou": {m: {b: v["miou"]["value"] for b, v in per.items()}
+                                  for m, per in rob["quantization"].items()},
             "class_weights": results["class_weights"], "train": results["train"], "test": results["test"],
             "skipped": results["skipped"],
             "seeds": results["seeds"], "seconds_total": round(seconds, 3)}

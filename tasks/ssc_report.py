@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks.ssc import DISPLAY, N_CLASSES
+from models.ssc import SSC_PILLAR
+from tasks.ssc import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
 from typ.config import SscConfig
 from typ.io import atomic_path, write_text
 from typ.metrics.ssc import SSC_CLASSES
@@ -21,8 +22,21 @@ PAPER = {"none": (53.2, 42.2, 60.0, 65.6, 54.4, 48.3, 31.8, 41.2, 12.0),
          "late": (61.5, 48.2, 63.6, 71.4, 55.8, 55.6, 40.5, 49.0, 16.9)}
 #: the class colours of the renders (empty white)
 COLORS = ("white", "dimgray", "blue", "yellowgreen", "orange", "green", "red")
+#: what the generated arm's single-agent network learns from, by ``ssc.generated_views``
+GENERATED_VIEWS = {"all": "every agent's view, the generated ones scored on their whole map",
+                   "footprint": "every agent's view, the generated ones scored only on the map columns within "
+                                f"{FOOTPRINT_CELLS} columns ({FOOTPRINT_CELLS * SSC_PILLAR:.1f} m) of one of their points",
+                   "ego": "the egos' true views only (the cooperators' generated clouds reach only the fused "
+                          "networks)"}
 SWEEPS = {"position_std": "position noise σ (m)", "heading_std_deg": "heading noise σ (°)",
           "delay_ms": "time delay applied (ms)"}
+
+
+def _joined(names: list[str]) -> str:
+    """"a", "a and b", "a, b and c"."""
+    if len(names) < 2:
+        return "".join(names) or "nothing"
+    return ", ".join(names[:-1]) + " and " + names[-1]
 
 
 def _pct(cell: dict) -> str:
@@ -62,7 +76,8 @@ def _generated(results: dict, block: SscConfig) -> list[str]:
     lines = head + [
         f"The same training frames and maps, with the cooperating agents' clouds those `{block.generated}/"
         f"{block.domain}/{block.train_split}` holds (what the generate stage wrote for them; the ego's cloud is "
-        "true, so no fusion has no generated row); scored on the true test clouds. Ratio: generated over oracle, "
+        "true, so no fusion has no generated row); scored on the true test clouds. The single-agent network (no "
+        f"and late fusion) learns from {GENERATED_VIEWS[block.generated_views]}. Ratio: generated over oracle, "
         "its interval from the same scenario resamples on both sides (the issue's target: ≥ 0.85).", "",
         "| method | mIoU oracle | mIoU generated | generated / oracle mIoU | IoU oracle | IoU generated | "
         "generated / oracle IoU |", "|---|---|---|---|---|---|---|"]
@@ -85,8 +100,9 @@ def report_markdown(results: dict, block: SscConfig) -> str:
         f"Written by the `ssc` stage (profile's `ssc` block). Test: {t['samples']} ego frames from "
         f"{t['scenarios']} held-out `{block.domain}/{block.test_split}` scenarios; training: {tr['views']} agent "
         f"views ({tr['samples']} samples) from {tr['scenarios']} `{block.train_split}` scenarios. "
-        f"{len(seeds)} training seed(s) {seeds}; the single-agent network trains {block.steps} steps, early "
-        f"fusion and AttFuse {block.warm_start_steps} more from it. Each cell is the figure (%) with counts "
+        f"{len(seeds)} training seed(s) {seeds}; the single-agent network trains {block.steps} steps, "
+        f"{_joined([DISPLAY[m] for m in block.methods if NETWORK[m] == m])} {block.warm_start_steps} more from "
+        "it. Each cell is the figure (%) with counts "
         f"pooled over the frames (SemanticKITTI), mean over seeds, and its 95 % bootstrap interval over "
         f"scenarios and seeds ({block.bootstrap} replicates). Grid: V2VSSC's 128 × 128 × 20 voxels over "
         f"x, y ∈ [−50, 50) m, z ∈ [−3, 5) m in the ego's frame; classes as V2VSSC (empty, road, car, terrain, "
@@ -133,9 +149,10 @@ def report_markdown(results: dict, block: SscConfig) -> str:
         for method, entry in rob["methods"].items():
             lines.append(f"| {DISPLAY[method]} | " + " | ".join(_pct(c["miou"]) for c in entry[sweep]) + " |")
         lines.append("")
-    if rob["quantization"]:
-        lines += ["AttFuse with its messages quantised (per-channel min-max, V2VSSC Fig. 5's compression), mIoU (%): "
-                  + ", ".join(f"{b} bit {_pct(v['miou'])}" for b, v in rob["quantization"].items()) + ".", ""]
+    for method, per in rob["quantization"].items():
+        lines += [f"{DISPLAY[method]} with its messages quantised (per-channel min-max, V2VSSC Fig. 5's "
+                  "compression), mIoU (%): " + ", ".join(f"{b} bit {_pct(v['miou'])}" for b, v in per.items()) + ".",
+                  ""]
     lines += ["## Predicted against true maps (first test frame, first seed)", "",
               "![ssc gallery](ssc_gallery.png)", "",
               "Top class of each voxel column (the highest non-empty voxel), the ego at the centre.", "",
@@ -182,7 +199,8 @@ def render_maps(truth: np.ndarray, predictions: dict[str, np.ndarray], path: Pat
 
 
 def render_curves(results: dict, path: Path) -> Path:
-    """mIoU with its interval against each robustness sweep, and AttFuse's against message bits."""
+    """mIoU with its interval against each robustness sweep, and the feature-sending methods' against
+    message bits."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -201,10 +219,10 @@ def render_curves(results: dict, path: Path) -> Path:
                             color=colors[method], alpha=0.12)
         ax.set(xlabel=label, ylabel="mIoU (%)", title=f"mIoU vs {label.split(' (')[0]}")
     ax = axes[3]
-    if rob["quantization"]:
-        bits = list(rob["quantization"])
-        ax.plot([int(b) for b in bits], [100 * rob["quantization"][b]["miou"]["value"] for b in bits], "o-",
-                color=colors["attfuse"], label="AttFuse")
+    for method, per in rob["quantization"].items():
+        ax.plot([int(b) for b in per], [100 * v["miou"]["value"] for v in per.values()], "o-",
+                color=colors[method], label=DISPLAY[method])
+    if any(rob["quantization"].values()):
         if "none" in rob["methods"]:
             ax.axhline(100 * rob["methods"]["none"]["position_std"][0]["miou"]["value"], color=colors["none"],
                        linestyle="--", label="No Fusion")

@@ -46,6 +46,8 @@ SMALL = {
     "ssc": {"steps": 2, "warm_start_steps": 1, "bootstrap": 20,
             "network": {"layer_nums": [1, 1, 1], "num_filters": [8, 8, 8], "num_upsample_filters": [8, 8, 8],
                         "pillar_channels": 8, "head_hidden": 8},
+            "v2xvit": {"dim": 24, "shrink_stride": 1, "heads": 1, "dim_head": 8, "window_heads": [1, 1],
+                       "window_dim_heads": [8, 8], "mlp_dim": 8},
             "robustness": {"position_std": [0.0, 0.2], "heading_std_deg": [0.0], "delay_ms": [0, 100],
                            "quantization_bits": [8]}},
     "evaluate": {"n_boot": 20, "max_pairs": 2, "gallery": 1},
@@ -220,7 +222,7 @@ def test_ssc_stage_scores_every_method_and_saves_its_networks(project):
 
     proj, _, _ = project
     ssc = json.loads((proj / "metrics" / "ssc.json").read_text())
-    methods = ["none", "early", "late", "attfuse"]
+    methods = ["none", "early", "late", "attfuse", "v2xvit"]
     for setting in ("perfect", "noisy"):
         assert sorted(ssc["tables"][setting]) == sorted(methods)
         for method, row in ssc["tables"][setting].items():
@@ -229,10 +231,10 @@ def test_ssc_stage_scores_every_method_and_saves_its_networks(project):
     assert ssc["tables"]["perfect"]["late"]["frames"] == 2 and ssc["test"] == {"samples": 2, "scenarios": 1}
     assert ssc["applied_delay_ms"] == [0.0, 100.0] and set(ssc["robustness_miou"]) == set(methods)
     for data in ("oracle", "generated"):
-        for name in ("single", "early", "attfuse"):
+        for name in ("single", "early", "attfuse", "v2xvit"):
             folder = proj / "artifacts" / "ssc" / "models" / data / f"{name}-seed0"
             assert read_config(folder, "ssc")["config"]["network"] == name and read_weights(folder, "ssc")
-    assert sorted(ssc["tables"]["generated"]) == ["attfuse", "early", "late"] and ssc["skipped"] == {}
+    assert sorted(ssc["tables"]["generated"]) == ["attfuse", "early", "late", "v2xvit"] and ssc["skipped"] == {}
     for row in ssc["tables"]["generated"].values():
         assert row["ratio_miou"]["low"] <= row["ratio_miou"]["value"] <= row["ratio_miou"]["high"]
     report = (proj / "reports" / "ssc.md").read_text()

@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 
 from tasks import ssc as S
 from tasks import ssc_report
@@ -16,10 +17,14 @@ from typ.metrics.ssc import ssc_iou
 
 NETWORK = {"layer_nums": [1, 1, 1], "num_filters": [8, 8, 8], "num_upsample_filters": [8, 8, 8],
            "pillar_channels": 8, "head_hidden": 8, "max_pillars": 16384}
+V2XVIT = {"dim": 8, "depth": 1, "heads": 2, "dim_head": 4, "window_sizes": [4, 8], "window_heads": [1, 1],
+          "window_dim_heads": [4, 4], "mlp_dim": 8, "dropout": 0.0,
+          "shrink_stride": 2}    # OpenCOOD's shrink (tiny keeps stride 1: tests/test_fusion.py covers that)
+METHODS = ["none", "early", "late", "attfuse", "v2xvit"]     # every method, whatever the profile runs
 
 
 def _block(tmp_path, **changes):
-    over = {"ssc": {"network": NETWORK, "steps": 6, "warm_start_steps": 2, "bootstrap": 20, "lr": 5e-3,
+    over = {"ssc": {"network": NETWORK, "v2xvit": V2XVIT, "methods": METHODS, "steps": 6, "warm_start_steps": 2, "bootstrap": 20, "lr": 5e-3,
                     "robustness": {"position_std": [0.0, 0.4], "heading_std_deg": [0.0], "delay_ms": [0, 100],
                                    "quantization_bits": [4]},
                     "noisy": {"position_std": 0.2, "heading_std_deg": 0.2, "delay_ms": 100}, **changes}}
@@ -62,7 +67,7 @@ def test_training_set_holds_every_agent_view_and_the_ego_maps(root):
 
 def test_every_network_trains_and_every_method_predicts(trained, root):
     block, data, _, nets = trained
-    assert set(nets.networks) == {"single", "early", "attfuse"}
+    assert set(nets.networks) == {"single", "early", "attfuse", "v2xvit"}
     for name, losses in nets.losses.items():
         steps = block.steps if name == "single" else block.warm_start_steps
         assert len(losses) == steps and np.isfinite(losses).all(), name
@@ -75,7 +80,33 @@ def test_every_network_trains_and_every_method_predicts(trained, root):
     solo = S.ssc_dataset(root / "data/sim/real_cav/test", max_agents=1)
     assert np.array_equal(S.predict(nets, solo[0], "late"), S.predict(nets, solo[0], "none"))
     with pytest.raises(TypError, match="method"):
-        S.predict(nets, test[0], "v2xvit")
+        S.predict(nets, test[0], "cobevt")
+
+
+def test_v2xvit_runs_its_configured_transformer_with_an_occupancy_head(trained, root):
+    """V2X-ViT's network is the registry's module with the ``ssc.v2xvit`` block's transformer, the
+    single-agent backbone copied in, and an occupancy head on the transformer's width and stride."""
+    from models.fusion import V2XViT
+    from models.ssc import OccupancyHead
+
+    block, _, _, nets = trained
+    module, single = nets.networks["v2xvit"], nets.networks["single"].detector
+    assert type(module) is V2XViT and module.dim == V2XVIT["dim"] and len(module.layers) == V2XVIT["depth"]
+    assert isinstance(module.head, OccupancyHead) and module.head.up[0].in_channels == V2XVIT["dim"]
+    assert module.feature_stride == 2 * single.feature_stride and module.head.up[0].stride == (4, 4)
+    test = S.ssc_dataset(root / "data/sim/real_cav/test")
+    pillars, kw = S._inputs(single, "v2xvit", test[0])
+    assert module(pillars, **kw)["occ"].shape == (1, 7, 128, 128, 20)
+    # fine-tuned from the single-agent network, not from scratch: the backbone moved away from it
+    # by a little, the fresh V2X-ViT of the same seed is far further
+    fresh = S.build("v2xvit", S.ssc_detector(**S.model_kwargs(block)), S.network_options(block, "v2xvit"))
+    moved = [(a - b).abs().max().item() for a, b in zip(module.backbone.parameters(), single.backbone.parameters())]
+    scratch = [(a - b).abs().max().item() for a, b in zip(fresh.backbone.parameters(), single.backbone.parameters())]
+    assert max(moved) < max(scratch)
+    assert len(test[0].clouds) == 2
+    with S.compressed(module, 2):                  # V2X-ViT sends features: its messages quantise
+        coarse = module(pillars, **kw)["occ"]
+    assert not torch.equal(coarse, module(pillars, **kw)["occ"])
 
 
 def test_scores_pool_the_frames_and_the_interval_brackets_them(trained, root):
@@ -99,7 +130,7 @@ def test_a_rerun_loads_the_finished_networks_and_a_changed_budget_retrains(train
     block, data, weights, nets = trained
     said = []
     again = S.train_seed(block, data, weights, 0, root / block.out, log=said.append)
-    assert len(said) == 3 and all("loaded" in s for s in said)
+    assert len(said) == 4 and all("loaded" in s for s in said)
     test = S.ssc_dataset(root / "data/sim/real_cav/test")
     for method in block.methods:
         assert np.array_equal(S.predict(again, test[0], method), S.predict(nets, test[0], method)), method
@@ -109,6 +140,10 @@ def test_a_rerun_loads_the_finished_networks_and_a_changed_budget_retrains(train
     assert said == []                                           # nothing stored there: all trained
     S.train_seed(more, data, weights, 0, root / block.out, log=said.append)
     assert len(said) == 1 and "single" in said[0]               # the single-agent network's key is unchanged
+    said.clear()
+    wider = dataclasses.replace(more, v2xvit=dataclasses.replace(block.v2xvit, mlp_dim=16))
+    S.train_seed(wider, data, weights, 0, root / block.out, log=said.append)
+    assert len(said) == 3 and not any("v2xvit" in s for s in said)   # only V2X-ViT's key holds its options
 
 
 def test_the_ratio_interval_pairs_the_scenarios_and_is_one_for_the_same_networks():
@@ -137,7 +172,8 @@ def test_the_stage_writes_table_i_the_curves_and_the_metrics(root, tmp_path):
                 assert 0.0 <= cell["low"] <= cell["high"] <= 1.0 and np.isfinite(cell["value"]), (setting, method, f)
     assert results["tables"]["noisy"]["late"]["frames"] == 1 and results["tables"]["perfect"]["late"]["frames"] == 2
     rob = results["robustness"]
-    assert rob["applied_delay_ms"] == [0.0, 100.0] and list(rob["quantization"]) == ["4"]
+    assert rob["applied_delay_ms"] == [0.0, 100.0] and list(rob["quantization"]) == ["attfuse", "v2xvit"]
+    assert all(list(per) == ["4"] for per in rob["quantization"].values())
     # no fusion reads no cooperating agent: flat along every sweep
     flat = [c["miou"]["value"] for c in rob["methods"]["none"]["position_std"]]
     assert flat[0] == flat[1]
@@ -161,7 +197,9 @@ def test_top_class_is_the_highest_occupied_voxel():
 
 def test_bad_ssc_params_are_named():
     with pytest.raises(TypError, match="ssc.methods"):
-        config_from_dict({"ssc": {"methods": ["v2xvit"]}})
+        config_from_dict({"ssc": {"methods": ["cobevt"]}})
+    with pytest.raises(TypError, match="ssc.v2xvit"):
+        config_from_dict({"ssc": {"v2xvit": {"dim": 7}}})
     with pytest.raises(TypError, match="class_weight_eps"):
         config_from_dict({"ssc": {"class_weight_eps": 1.0}})
     with pytest.raises(TypError, match="ssc.noisy.delay_ms"):
@@ -176,13 +214,15 @@ def test_generated_cooperators_identical_to_the_true_ones_give_a_ratio_of_one(ro
     proj = tmp_path / "proj"
     shutil.copytree(root / "data" / "sim", proj / "data" / "sim")
     shutil.copytree(root / "data" / "sim" / "real_cav" / "train", proj / "data" / "generated" / "real_cav" / "train")
-    block = _block(tmp_path, robustness={"position_std": [0.0], "heading_std_deg": [0.0], "delay_ms": [0],
-                                         "quantization_bits": []})
+    block = _block(tmp_path, generated_views="all",   # every view: the generated arm sees the oracle's data
+                   robustness={"position_std": [0.0], "heading_std_deg": [0.0], "delay_ms": [0],
+                               "quantization_bits": []})
     logged = []
     results = S.run(block, proj, log=lambda m: None, log_fn=lambda values, step: logged.append(values))
-    assert sorted(k for d in logged for k in d) == [f"loss_{n}_seed0_last" for n in ("attfuse", "early", "single")]
+    assert sorted(k for d in logged for k in d) == [f"loss_{n}_seed0_last"
+                                                    for n in ("attfuse", "early", "single", "v2xvit")]
     gen = results["tables"]["generated"]
-    assert list(gen) == ["early", "late", "attfuse"] and results["skipped"] == {}
+    assert list(gen) == ["early", "late", "attfuse", "v2xvit"] and results["skipped"] == {}
     for method, row in gen.items():
         assert row["ratio_miou"]["value"] == 1.0 and row["ratio_iou"]["value"] == 1.0, method
         assert row["figures"]["miou"] == results["tables"]["perfect"][method]["figures"]["miou"], method
@@ -191,3 +231,58 @@ def test_generated_cooperators_identical_to_the_true_ones_give_a_ratio_of_one(ro
     assert metrics["targets"]["late_generated_ge_0.85_oracle_miou"] is True
     md = ssc_report.report_markdown(results, block)
     assert "TYP Table 1 for SSC" in md and "| Late Fusion |" in md
+
+
+def test_the_footprint_is_the_columns_near_the_points():
+    one = S.footprint(np.array([[0.1, 0.1, 0.0, 0.5]]))           # column (64, 64), a disc of radius 2
+    assert one.sum() == 13 and one[64, 62] and one[65, 65] and not one[66, 65]
+    corner = S.footprint(np.array([[-49.9, -49.9, 0.0, 0.5], [60.0, 0.0, 0.0, 0.5]]))   # the second: off the grid
+    assert corner.sum() == 6 and corner[0, 2] and corner[1, 1] and not corner[2, 1]
+    assert not S.footprint(np.zeros((0, 4))).any()
+
+
+def test_generated_views_modes_keep_the_ego_views_and_mask_or_drop_the_others(root):
+    data = S.TrainingSet.read(S.ssc_dataset(root / "data/sim/real_cav/train"))
+    assert data.ego == [j == 0 for s in data.samples for j in range(len(s.clouds))] and not all(data.ego)
+    assert data.with_generated_views("all") is data
+    ego = data.with_generated_views("ego")
+    assert len(ego.views) == len(data.samples) and ego.samples is data.samples
+    assert all(c is s.clouds[0] for (c, _), s in zip(ego.views, data.samples))
+    fp = data.with_generated_views("footprint")
+    assert len(fp.views) == len(data.views) and fp.ego == data.ego
+    for (c, m), (c0, m0), e in zip(fp.views, data.views, data.ego):
+        assert c is c0
+        if e:
+            assert m is m0
+        else:
+            seen = S.footprint(c)
+            assert 0 < seen.sum() < seen.size
+            assert np.array_equal(m[seen], m0[seen]) and (m[~seen] == S.IGNORE).all()
+    assert np.array_equal(fp.class_counts()[1:] <= data.class_counts()[1:], np.ones(6, bool))
+    assert len({data.key, ego.key, fp.key}) == 3
+    with pytest.raises(TypError, match="generated_views"):
+        data.with_generated_views("half")
+
+
+def test_ignored_voxels_are_left_out_of_the_loss(root):
+    """The first logged loss (before any update) equals the class-weighted cross-entropy over the
+    voxels not ignored, computed here from a network built the same way."""
+    import torch.nn.functional as F
+
+    data = S.TrainingSet.read(S.ssc_dataset(root / "data/sim/real_cav/train"))
+    cloud, labels = data.views[1]
+    masked = labels.copy()
+    masked[:64] = S.IGNORE
+    one = S.TrainingSet([(cloud, masked)], data.samples[:1], data.ego_maps[:1], "k", [False])
+    weights = np.linspace(0.5, 2.0, 7)
+    kw = S.model_kwargs(_block(root))
+    _, losses = S.train_single(one, steps=1, seed=3, lr=1e-3, model_kw=kw, weights=weights)
+    S.seed_everything(3)
+    model = S.NoFusion(detector=S.ssc_detector(**kw)).train()
+    with torch.no_grad():
+        logits = model(model.detector.pillarize([cloud]), agent_mask=torch.ones(1, 1, dtype=torch.bool))["occ"][0]
+    keep = torch.from_numpy(masked != S.IGNORE)
+    y = torch.from_numpy(masked.astype(np.int64))[keep]
+    nll = -F.log_softmax(logits, 0).permute(1, 2, 3, 0)[keep].gather(1, y[:, None])[:, 0]
+    w = torch.tensor(weights, dtype=torch.float32)[y]
+    assert losses[0] == pytest.approx(float((w * nll).sum() / w.sum()), rel=1e-5)

@@ -529,7 +529,9 @@ class DetectorConfig:
 
 @dataclass(frozen=True)
 class V2XViTConfig:
-    """The V2X-ViT fusion transformer (``models/fusion.V2XViT``) on the detector's backbone."""
+    """The V2X-ViT fusion transformer (``models/fusion.V2XViT``) on the detector's backbone;
+    ``shrink_stride``: the stride of its shrink conv (OpenCOOD's 2; with 1 and ``dim`` equal to the
+    backbone's width it starts as the single-agent network, :meth:`V2XViT.warm_start`)."""
 
     dim: int
     depth: int
@@ -540,9 +542,10 @@ class V2XViTConfig:
     window_dim_heads: tuple[int, ...]
     mlp_dim: int
     dropout: float
+    shrink_stride: int = 2
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "dim", "depth", "heads", "dim_head", "mlp_dim")
+        _positive_fields(self, where, name, "dim", "depth", "heads", "dim_head", "mlp_dim", "shrink_stride")
         if self.dim % 2 or not self.window_sizes or \
                 not len(self.window_sizes) == len(self.window_heads) == len(self.window_dim_heads):
             raise TypError(where, f"{name}.window_sizes", "an even dim and equal-length window lists",
@@ -682,9 +685,9 @@ class FusionConfig:
         return tuple(self.seed + k for k in range(self.seeds))
 
 
-#: the fusion methods semantic scene completion runs (``models.fusion.METHODS`` names; V2X-ViT's
-#: transformer has no occupancy head here): no and late fusion share one single-agent network
-SSC_METHODS = ("none", "early", "late", "attfuse")
+#: the fusion methods semantic scene completion runs (``models.fusion.METHODS`` names, every one):
+#: no and late fusion share one single-agent network
+SSC_METHODS = ("none", "early", "late", "attfuse", "v2xvit")
 
 
 @dataclass(frozen=True)
@@ -730,20 +733,25 @@ class SscConfig:
 
     The single-agent network trains ``steps`` steps of one agent view (every agent's own cloud
     against its own map) with class-balanced cross-entropy (weights ``1 / ln(class_weight_eps +
-    share)``), Adam at ``lr`` with cosine decay; no and late fusion run it. Early fusion and
-    AttFuse start from it and train ``warm_start_steps`` on the ego's map at ``finetune_lr``.
-    Every network is trained ``seeds`` times (``seed``, ``seed + 1``, ...). Each method is scored
+    share)``), Adam at ``lr`` with cosine decay; no and late fusion run it. Early fusion, AttFuse
+    and V2X-ViT (``v2xvit``: its transformer) start from it and train ``warm_start_steps`` on the
+    ego's map at ``finetune_lr``. Every network is trained ``seeds`` times (``seed``, ``seed + 1``, ...). Each method is scored
     on the test split in the perfect setting and in ``noisy``; the ``robustness`` sweeps (pose
-    noise, delay, AttFuse's message bits) use the first seed's networks. Intervals: ``bootstrap``
-    replicates over test scenarios (and seeds).
+    noise, delay, the feature-sending methods' message bits) use the first seed's networks.
+    Intervals: ``bootstrap`` replicates over test scenarios (and seeds).
 
     ``data``: what the networks train on, each scored on the true test split: ``oracle`` (every
     agent's true cloud) and ``generated`` (the cooperating agents' clouds TYP generated for the
-    same frames under ``generated``, the ego's true; TYP Table 1 for SSC). Maps are true in both."""
+    same frames under ``generated``, the ego's true; TYP Table 1 for SSC). Maps are true in both.
+    ``generated_views``: what the single-agent network of the generated arm learns from
+    (:meth:`tasks.ssc.TrainingSet.with_generated_views`): ``all`` every agent's view, ``footprint``
+    the generated views scored only near their points, ``ego`` the ego's true views only."""
 
     methods: tuple[str, ...]
     data: tuple[Literal["oracle", "generated"], ...]
+    generated_views: Literal["all", "footprint", "ego"]
     network: SscNetworkConfig
+    v2xvit: V2XViTConfig
     robustness: RobustnessConfig
     noisy: SscNoisyConfig
     comm_range: float
@@ -765,6 +773,7 @@ class SscConfig:
 
     def check(self, where: str, name: str) -> None:
         self.network.check(where, f"{name}.network")
+        self.v2xvit.check(where, f"{name}.v2xvit")
         if not self.data or self.data[0] != "oracle" or len(set(self.data)) != len(self.data):
             raise TypError(where, f"{name}.data", "oracle first (Table I, the robustness sweeps), then generated "
                            "or nothing", list(self.data))
