@@ -23,6 +23,10 @@ from typ.errors import TypError
 
 #: signals held while a server starts or stops (see :meth:`LocalServer.start`)
 HELD_SIGNALS = {signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
+#: ``python -c`` program: unblock :data:`HELD_SIGNALS`, then exec ``python <its arguments>`` (same pid)
+UNBLOCK_AND_EXEC = ("import os, signal, sys; signal.pthread_sigmask(signal.SIG_UNBLOCK, {%s}); "
+                    "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])"
+                    % ", ".join(f"signal.{s.name}" for s in sorted(HELD_SIGNALS)))
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -60,8 +64,12 @@ class LocalServer:
                      "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
         child_env.pop("PREFECT_API_URL", None)
         log = home / "server.log"
-        cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
-               "--analytics-off", "--ui" if ui else "--no-ui"]
+        # The child inherits the signal mask held below across fork and exec: unblock the held
+        # signals before exec'ing prefect (a shim, not preexec_fn, which is unsafe beside threads).
+        # Blocked, the server ignored SIGTERM and Ctrl-C: every stop waited out its grace for
+        # SIGKILL, and pytest-xdist killed a worker stopping one in its cleanup, leaving it running.
+        cmd = [sys.executable, "-c", UNBLOCK_AND_EXEC, "-m", "prefect", "server", "start", "--host", host,
+               "--port", str(port), "--analytics-off", "--ui" if ui else "--no-ui"]
         # A signal that arrives between the fork and `server = ...` would leave a server nobody
         # knows about: hold SIGTERM/SIGINT until the handle exists, then stop it on any way out.
         held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)

@@ -154,3 +154,23 @@ def test_with_server_without_a_runnable_command_is_bad_input(tmp_path, argv, say
     run = _typ(tmp_path, *argv, env=_env(tmp_path, PREFECT_API_URL="http://127.0.0.1:9/api"))
     out, _ = run.communicate(timeout=120)
     assert run.returncode == 2 and says in out, out
+
+
+def test_the_server_takes_sigterm_though_it_was_started_with_the_signals_held(tmp_path):
+    """LocalServer.start holds SIGTERM/SIGINT/SIGHUP around its fork; the mask is inherited across
+    exec, so the server used to ignore them: stop() waited out its grace and SIGKILLed it, and a
+    pytest-xdist worker killed meanwhile left the server running. It must unblock them and stop on
+    SIGTERM."""
+    from flows.server import HELD_SIGNALS, LocalServer
+
+    server = LocalServer.start(tmp_path / "prefect", ui=False, timeout=180, env=_env(tmp_path))
+    try:
+        status = Path(f"/proc/{server.process.pid}/status")
+        if status.exists():   # Linux: the server's blocked-signal mask has none of the held signals
+            blocked = int(next(l for l in status.read_text().splitlines() if l.startswith("SigBlk:")).split()[1], 16)
+            assert not any(blocked >> (int(s) - 1) & 1 for s in HELD_SIGNALS), hex(blocked)
+        assert _healthy(server.api_url)
+    finally:
+        server.stop(grace=60.0)
+    assert server.process.returncode != -signal.SIGKILL   # it ended on SIGTERM, not on the SIGKILL after the grace
+    assert _port_free(server.port)
