@@ -156,13 +156,12 @@ class TrainingSet:
             raise TypError("tasks.ssc.TrainingSet", "generated_views", "all, footprint or ego", mode)
         views, ego = [], []
         for (c, m), e in zip(self.views, self.ego):
-            seen = footprint(c) if not e and mode == "footprint" else None
-            if e:
-                views.append((c, m))
-            elif seen is not None and seen.any():   # a generated view with no point in the grid: dropped
-                views.append((c, np.where(seen[:, :, None], m, np.uint8(IGNORE))))
-            else:
-                continue
+            if not e:
+                seen = footprint(c) if mode == "footprint" else None
+                if seen is None or not seen.any():   # ego mode, or a generated view with no point in the grid
+                    continue
+                m = np.where(seen[:, :, None], m, np.uint8(IGNORE))
+            views.append((c, m))
             ego.append(e)
         extra = {"footprint_cells": FOOTPRINT_CELLS} if mode == "footprint" else {}
         return TrainingSet(views, self.samples, self.ego_maps, hash_obj([self.key, mode, extra])[:16], ego)

@@ -25,7 +25,8 @@ COLORS = ("white", "dimgray", "blue", "yellowgreen", "orange", "green", "red")
 #: what the generated arm's single-agent network learns from, by ``ssc.generated_views``
 GENERATED_VIEWS = {"all": "every agent's view, the generated ones scored on their whole map",
                    "footprint": "every agent's view, the generated ones scored only on the map columns within "
-                                f"{FOOTPRINT_CELLS} columns ({FOOTPRINT_CELLS * SSC_PILLAR:.1f} m) of one of their points",
+                                f"{FOOTPRINT_CELLS} columns ({FOOTPRINT_CELLS * SSC_PILLAR:.1f} m) of one of their "
+                                "points",
                    "ego": "the egos' true views only (the cooperators' generated clouds reach only the fused "
                           "networks)"}
 SWEEPS = {"position_std": "position noise σ (m)", "heading_std_deg": "heading noise σ (°)",

@@ -24,7 +24,8 @@ METHODS = ["none", "early", "late", "attfuse", "v2xvit"]     # every method, wha
 
 
 def _block(tmp_path, **changes):
-    over = {"ssc": {"network": NETWORK, "v2xvit": V2XVIT, "methods": METHODS, "steps": 6, "warm_start_steps": 2, "bootstrap": 20, "lr": 5e-3,
+    over = {"ssc": {"network": NETWORK, "v2xvit": V2XVIT, "methods": METHODS, "steps": 6, "warm_start_steps": 2,
+                    "bootstrap": 20, "lr": 5e-3,
                     "robustness": {"position_std": [0.0, 0.4], "heading_std_deg": [0.0], "delay_ms": [0, 100],
                                    "quantization_bits": [4]},
                     "noisy": {"position_std": 0.2, "heading_std_deg": 0.2, "delay_ms": 100}, **changes}}
