@@ -8,7 +8,14 @@ Conventions:
   every agent's boxes moved into the ego frame), inside the detection range in x/y (OpenCOOD
   drops the others), after rotated NMS (``typ.boxes_bev.nms_bev``).
 - AP by range with OpenCOOD's conventions (:mod:`typ.metrics.detection`) at IoU 0.5 and 0.7,
-  overall and for 0–30 / 30–50 / 50–100 m.
+  overall and for 0–30 / 30–50 / 50–100 m. OpenCOOD's default ranks the detections in frame
+  order (each frame's by score, frames one after another), as the OPV2V, V2V4Real and TYP tables
+  do; Table 1's cells also carry ``ap50_global`` / ``ap70_global`` (overall), with the detections
+  of all frames ranked by score (OpenCOOD's ``--global_sort_detections``, the mainstream AP),
+  which frame order penalises for every low-score detection wherever it sits.
+- Method against method (:func:`paired_difference`): the AP difference with a paired interval,
+  both methods scored on the same resampled scenarios and seeds, so the scenarios' shared
+  difficulty cancels; the marginal intervals stay the rule for "beats".
 - Every cell is ``value [low, high]``: ``value`` the mean over training seeds of the AP on all
   test frames; ``[low, high]`` the 95 % cluster-bootstrap interval (:mod:`typ.metrics.intervals`)
   resampling test scenarios (a scenario's frames are correlated) and training seeds; a
@@ -81,28 +88,58 @@ def _finite(v: float) -> float | None:
     return None if v is None or not math.isfinite(v) else round(float(v), 4)
 
 
+def _frames_of(scenarios: Sequence[str]) -> list[np.ndarray]:
+    """Frame indices of each scenario, scenarios in sorted order (the bootstrap's clusters)."""
+    return [np.flatnonzero(np.asarray(scenarios) == n) for n in sorted(set(scenarios))]
+
+
+def _interval(stat: Callable[[np.ndarray, np.ndarray], float], n_scenarios: int, n_seeds: int, *, n_boot: int,
+              seed: int) -> dict | None:
+    iv = bootstrap(stat, n_scenarios, n_seeds, n_boot=n_boot, seed=seed)
+    return None if not math.isfinite(iv.value) else \
+        {"value": _finite(iv.value), "low": _finite(iv.low), "high": _finite(iv.high)}
+
+
 def ap_cell(per_seed: Sequence[Mapping[str, FrameMatches]], scenarios: Sequence[str], *, n_boot: int,
             seed: int = 0, keys: Sequence[str] = tuple(IOU_THRESHOLDS),
-            bands: Sequence[str] = BANDS) -> dict:
+            bands: Sequence[str] = BANDS, global_sort: bool = False) -> dict:
     """``{key: {band: {"value", "low", "high"}}}`` over the seeds' matches of one test set whose
     frame ``i`` belongs to ``scenarios[i]`` (module doc); None where a band has no gt. Also
-    ``"per_seed"``: each seed's AP@0.5 overall."""
-    names = sorted(set(scenarios))
-    frames_of = [np.flatnonzero(np.asarray(scenarios) == n) for n in names]
+    ``"per_seed"``: each seed's AP@0.5 overall, and with ``global_sort`` ``"<key>_global"``:
+    ``{"overall": ...}`` with the detections of all frames ranked by score."""
+    frames_of = _frames_of(scenarios)
     out: dict = {}
-    for key in keys:
-        out[key] = {}
-        for band in bands:
-            def stat(c: np.ndarray, s: np.ndarray, key=key, band=band) -> float:
+    ranked = [(key, key, False) for key in keys] + ([(f"{key}_global", key, True) for key in keys]
+                                                    if global_sort else [])
+    for name, key, by_score in ranked:
+        out[name] = {}
+        for band in (bands if not by_score else ("overall",)):
+            def stat(c: np.ndarray, s: np.ndarray, key=key, band=band, by_score=by_score) -> float:
                 frames = np.concatenate([frames_of[j] for j in c])
-                return float(np.mean([ap_of_frames(per_seed[k][key], band, frames) for k in s]))
+                return float(np.mean([ap_of_frames(per_seed[k][key], band, frames, by_score) for k in s]))
 
-            iv = bootstrap(stat, len(names), len(per_seed), n_boot=n_boot, seed=seed)
-            out[key][band] = None if not math.isfinite(iv.value) else \
-                {"value": _finite(iv.value), "low": _finite(iv.low), "high": _finite(iv.high)}
+            out[name][band] = _interval(stat, len(frames_of), len(per_seed), n_boot=n_boot, seed=seed)
     all_frames = np.arange(len(scenarios))
     out["per_seed"] = [_finite(ap_of_frames(m["ap50"], "overall", all_frames)) for m in per_seed]
     return out
+
+
+def paired_difference(a: Sequence[Mapping[str, FrameMatches]], b: Sequence[Mapping[str, FrameMatches]],
+                      scenarios: Sequence[str], *, n_boot: int, seed: int = 0, key: str = "ap50",
+                      band: str = "overall", global_sort: bool = False) -> dict | None:
+    """AP of ``a`` minus AP of ``b`` (each per seed, seed k against seed k) on one test set, with
+    the 95 % interval of the same cluster bootstrap as :func:`ap_cell` where both sides are scored
+    on each replicate's scenarios and seeds (module doc). None where the band has no gt."""
+    if len(a) != len(b):
+        raise ValueError(f"paired seeds: {len(a)} against {len(b)}")
+    frames_of = _frames_of(scenarios)
+
+    def stat(c: np.ndarray, s: np.ndarray) -> float:
+        frames = np.concatenate([frames_of[j] for j in c])
+        return float(np.mean([ap_of_frames(a[k][key], band, frames, global_sort)
+                              - ap_of_frames(b[k][key], band, frames, global_sort) for k in s]))
+
+    return _interval(stat, len(frames_of), len(a), n_boot=n_boot, seed=seed)
 
 
 def pr_curve(preds, inputs: Inputs, iou_thr: float = 0.5) -> dict[str, list[float]]:
@@ -125,6 +162,7 @@ class Scorer:
         self._inputs: dict[tuple, Inputs] = {}
         self._preds: dict[tuple, list] = {}
         self._cells: dict[tuple, dict] = {}
+        self._matches: dict[tuple, list[dict]] = {}
 
     def inputs(self, **perturbation) -> Inputs:
         perturbation = _effective(perturbation)
@@ -143,16 +181,26 @@ class Scorer:
             self._preds[key] = [predict(t.as_method(method), inputs, self.cfg, bits=bits) for t in self.networks[run]]
         return self._preds[key]
 
+    def matches(self, run: str, method: str, *, bits: int | None = None, **perturbation) -> list[dict]:
+        """Per seed of ``run``: :func:`matches` of ``method`` on the (perturbed) test split."""
+        perturbation = _effective(perturbation)
+        key = (run, method, bits, tuple(sorted(perturbation.items())))
+        if key not in self._matches:
+            inputs = self.inputs(**perturbation)
+            self._matches[key] = [matches(p, inputs) for p in self.predictions(run, method, bits=bits,
+                                                                                 **perturbation)]
+        return self._matches[key]
+
     def cell(self, run: str, method: str, *, bits: int | None = None, keys=tuple(IOU_THRESHOLDS), bands=BANDS,
-             **perturbation) -> dict:
+             global_sort: bool = False, **perturbation) -> dict:
         """:func:`ap_cell` of ``method`` with ``run``'s networks on the (perturbed) test split."""
         perturbation = _effective(perturbation)
-        key = (run, method, bits, tuple(keys), tuple(bands), tuple(sorted(perturbation.items())))
+        key = (run, method, bits, tuple(keys), tuple(bands), global_sort, tuple(sorted(perturbation.items())))
         if key not in self._cells:
             inputs = self.inputs(**perturbation)
-            per_seed = [matches(p, inputs) for p in self.predictions(run, method, bits=bits, **perturbation)]
-            self._cells[key] = ap_cell(per_seed, inputs.scenarios, n_boot=self.cfg.bootstrap, seed=self.cfg.seed,
-                                       keys=keys, bands=bands)
+            self._cells[key] = ap_cell(self.matches(run, method, bits=bits, **perturbation), inputs.scenarios,
+                                       n_boot=self.cfg.bootstrap, seed=self.cfg.seed, keys=keys, bands=bands,
+                                       global_sort=global_sort)
         return copy.deepcopy(self._cells[key])
 
 
@@ -161,7 +209,7 @@ def fill_tables(scorer: Scorer, cells: Sequence[Cell], *, pr_tables: Sequence[st
     keep the PR curve (AP@0.5, overall) of their first seed."""
     out: dict = {}
     for c in cells:
-        value = scorer.cell(c.run, c.method)
+        value = scorer.cell(c.run, c.method, global_sort=c.table == "table1")
         if c.table in pr_tables:
             value["pr"] = pr_curve(scorer.predictions(c.run, c.method)[0], scorer.inputs())
         row = out.setdefault(c.table, {}).setdefault(c.method, {})
@@ -169,6 +217,26 @@ def fill_tables(scorer: Scorer, cells: Sequence[Cell], *, pr_tables: Sequence[st
             row[c.row] = value
         else:
             row.setdefault(c.row, {})[c.column] = value
+    return out
+
+
+def differences(scorer: Scorer, cells: Sequence[Cell]) -> dict:
+    """Table 1, each fusion method's oracle row against no fusion: :func:`paired_difference` of
+    AP@0.5 overall and 50–100 m (frame order) and overall with global ranking,
+    ``{method: {"overall", "50-100", "overall_global"}}``; empty without a no-fusion cell."""
+    table1 = {(c.method, c.row): c.run for c in cells if c.table == "table1"}
+    base = table1.get(("none", "ego"))
+    if base is None:
+        return {}
+    scenarios, kw = scorer.inputs().scenarios, {"n_boot": scorer.cfg.bootstrap, "seed": scorer.cfg.seed}
+    out = {}
+    for (method, row), run in table1.items():
+        if row != "oracle" or method == "none":
+            continue
+        a, b = scorer.matches(run, method), scorer.matches(base, "none")
+        out[method] = {"overall": paired_difference(a, b, scenarios, **kw),
+                       "50-100": paired_difference(a, b, scenarios, band="50-100", **kw),
+                       "overall_global": paired_difference(a, b, scenarios, global_sort=True, **kw)}
     return out
 
 
@@ -254,7 +322,7 @@ def score(cfg: FusionConfig, test: FusionDataset, networks: Mapping[str, Sequenc
     if progress:
         progress(f"robustness of {len(robustness_runs)} methods")
     return {**test_summary(scorer.inputs()), "seeds": cfg.seeds, "tables": tables,
-            "robustness": robustness(scorer, robustness_runs)}
+            "differences": differences(scorer, cells), "robustness": robustness(scorer, robustness_runs)}
 
 
 def score_benchmark(bench: Benchmark, progress: Callable[[str], None] | None = None) -> dict:

@@ -101,6 +101,19 @@ def test_every_oracle_and_generated_cell_holds_a_number(stage, project):
         for data, cell in row.items():
             assert _numbers(cell), (method, data, cell)
             assert len(cell["per_seed"]) == 2 and len(cell["pr"]["recall"]) == len(cell["pr"]["precision"])
+            for key in ("ap50_global", "ap70_global"):      # ranked over all frames: overall only
+                g = cell[key]
+                assert set(g) == {"overall"} and 0.0 <= g["overall"]["low"] <= g["overall"]["value"] <= 1.0
+    # each fusion method's paired difference to no fusion: its value is the two cells' difference
+    assert set(results["differences"]) == set(list(METHODS)[1:])
+    for method, d in results["differences"].items():
+        assert set(d) == {"overall", "50-100", "overall_global"}
+        for name, key, band in (("overall", "ap50", "overall"), ("50-100", "ap50", "50-100"),
+                                ("overall_global", "ap50_global", "overall")):
+            expected = t1[method]["oracle"][key][band]["value"] - t1["none"]["ego"][key][band]["value"]
+            assert d[name]["value"] == pytest.approx(expected, abs=2e-4), (method, name)
+            assert d[name]["low"] <= d[name]["value"] <= d[name]["high"]
+    assert "ap50_global" not in results["tables"]["table3"]["late"]["scratch"]["1"]
     t3 = results["tables"]["table3"]
     for method in METHODS:
         assert set(t3[method]) == {"scratch", "colwaymo", "source"}
@@ -182,7 +195,10 @@ def test_report_and_metrics(stage, project):
     assert [int(r.split(",")[0]) for r in loss[1:]] == [row["step"] for row in bench.networks["oracle-late"][0].curve]
     metrics = json.loads(json.dumps(R.metrics_of(results)))
     assert metrics["table1"]["attfuse"]["generated"]["ap50"].keys() == set(BAND_NAMES)
-    assert set(metrics["targets"]) >= {"no_fusion_ap50", "beats_no_fusion", "v2xvit_ge_late", "generated_over_oracle"}
+    assert set(metrics["targets"]) >= {"no_fusion_ap50", "beats_no_fusion", "v2xvit_ge_late", "generated_over_oracle",
+                                       "beats_no_fusion_global_sort", "difference_above_zero"}
+    assert metrics["differences"] == results["differences"]
+    assert "global_sort_detections" in text and "| Method | Δ all | Δ 50–100 m | Δ all, global |" in text
     curves = bench.curves()
     assert set(curves) == set(bench.plan.runs) and all(set(c) == {"0", "1"} for c in curves.values())
 
@@ -297,6 +313,8 @@ def test_the_tables_of_perfect_agents_score_one(stage, project):
             assert c["ap50"]["overall"]["value"] == expected and c["ap70"]["overall"]["value"] == expected, \
                 (table, method, row)
             assert method == "none" or c["ap50"]["overall"]["low"] == 1.0
+            if table == "table1":     # precision 1 everywhere: the ranking cannot matter
+                assert c["ap50_global"]["overall"]["value"] == expected, (method, row)
 
 
 def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):
