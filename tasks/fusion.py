@@ -29,7 +29,6 @@ even alone, so the bytes do not depend on ``processes``. This stage trains and s
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
 import multiprocessing
 import time
 from collections.abc import Callable
@@ -43,6 +42,7 @@ from models.fusion import METHODS, SINGLE_AGENT
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
+from tasks.training import one_thread
 from typ import distributed
 from typ.config import FusionConfig
 from typ.errors import TypError
@@ -294,21 +294,6 @@ def training_processes(cfg: FusionConfig) -> int:
     if distributed.world_size() > 1 or distributed.device().type != "cpu":
         return 1
     return max(1, torch.get_num_threads())
-
-
-@contextlib.contextmanager
-def one_thread():
-    """Every training on the CPU runs on one intra-op thread, so that its bytes do not depend on
-    how many run at once; on an accelerator the thread count does not touch the arithmetic."""
-    if distributed.device().type != "cpu":
-        yield
-        return
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def train_job(cfg: FusionConfig, job: Job, inputs: Inputs) -> float:

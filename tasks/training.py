@@ -16,6 +16,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import re
@@ -177,3 +178,18 @@ def grad_norm(parameters) -> float:
 
 def steps_for(epochs: int, n_items: int, batch_size: int) -> int:
     return max(1, epochs * math.ceil(n_items / batch_size))
+
+
+@contextlib.contextmanager
+def one_thread():
+    """Every training on the CPU runs on one intra-op thread, so that its bytes do not depend on
+    how many run at once; on an accelerator the thread count does not touch the arithmetic."""
+    if distributed.device().type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

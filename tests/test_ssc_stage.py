@@ -287,3 +287,36 @@ def test_ignored_voxels_are_left_out_of_the_loss(root):
     nll = -F.log_softmax(logits, 0).permute(1, 2, 3, 0)[keep].gather(1, y[:, None])[:, 0]
     w = torch.tensor(weights, dtype=torch.float32)[y]
     assert losses[0] == pytest.approx(float((w * nll).sum() / w.sum()), rel=1e-5)
+
+
+def test_arms_trained_on_spawned_processes_are_the_bytes_of_one_thread_in_process(root, tmp_path):
+    """train_arms' (arm, seed) pairs on two spawned one-thread workers write the networks that
+    train_seed writes in this process, byte for byte (it trains on one thread too)."""
+    import shutil
+
+    proj = tmp_path / "proj"
+    shutil.copytree(root / "data" / "sim", proj / "data" / "sim")
+    shutil.copytree(root / "data" / "sim" / "real_cav" / "train", proj / "data" / "generated" / "real_cav" / "train")
+    block = _block(tmp_path, methods=["none", "attfuse"], steps=3, warm_start_steps=1)
+    data = S.training_set(block, proj, "oracle")
+    weights = S.class_weights(data.class_counts(), eps=block.class_weight_eps)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        said = []
+        S.train_arms(block, proj, ["oracle", "generated"], weights, log=said.append)
+    finally:
+        torch.set_num_threads(threads)
+    assert sorted(said) == ["ssc: the networks of generated seed 0 are trained",
+                            "ssc: the networks of oracle seed 0 are trained"]
+    pooled = proj / block.out / "models"
+    here = tmp_path / "here"
+    for arm in ("oracle", "generated"):
+        S.train_seed(block, S.training_set(block, proj, arm), weights, 0, here, log=lambda m: None, data_name=arm)
+        for net in ("single-seed0", "attfuse-seed0"):
+            a, b = (pooled / arm / net / "model.safetensors").read_bytes(), (here / "models" / arm / net /
+                                                                          "model.safetensors").read_bytes()
+            assert a == b, (arm, net)
+    # the generated arm learns from the ego views only (tiny's generated_views): its own network
+    assert (pooled / "generated" / "single-seed0" / "model.safetensors").read_bytes() != \
+        (pooled / "oracle" / "single-seed0" / "model.safetensors").read_bytes()
