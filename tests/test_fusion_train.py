@@ -134,3 +134,15 @@ def test_fine_tuning_needs_the_same_method(setup, tmp_path):
     single = Trained("late", build_model("late", cfg), None, "k", 0)
     with pytest.raises(TypError, match="init"):
         train("attfuse", dataclasses.replace(cfg), inputs, steps=1, out=tmp_path, name="x", init=single)
+
+
+@pytest.mark.parametrize("profile", ["tiny", "small"])
+def test_the_profiles_v2xvit_starts_as_the_single_agent_detector(profile):
+    """tiny's and small's V2X-ViT keep the backbone map's width and stride: warm-started, the
+    whole module (head included) starts from the single-agent detector, not from a fresh head."""
+    cfg = config_from_dict({"profile": profile}).fusion
+    single = build_model("late", cfg).detector
+    v2x = build_model("v2xvit", cfg)
+    assert v2x.keeps_single_map(single)
+    v2x.warm_start(single)
+    assert all(torch.equal(a, b) for a, b in zip(v2x.head.state_dict().values(), single.head.state_dict().values()))
