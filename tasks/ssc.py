@@ -319,16 +319,20 @@ def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: i
     return result
 
 
+def generated_root(block: SscConfig, root: Path) -> Path:
+    """Where the generated arm's cooperating clouds are: the generate stage's training split."""
+    return Path(root) / block.generated / block.domain / block.train_split
+
+
 def training_set(block: SscConfig, root: Path, data_name: str) -> TrainingSet:
     """The training set of arm ``data_name``: ``oracle`` (every agent's true cloud) or
-    ``generated`` (the cooperating clouds under ``block.generated``, the single-agent network's
-    views chosen by ``block.generated_views``)."""
-    sim = Path(root) / block.sim / block.domain
+    ``generated`` (the cooperating clouds under :func:`generated_root`, the single-agent
+    network's views chosen by ``block.generated_views``)."""
+    train = Path(root) / block.sim / block.domain / block.train_split
     if data_name == "oracle":
-        return TrainingSet.read(ssc_dataset(sim / block.train_split, comm_range=block.comm_range))
-    gen_root = Path(root) / block.generated / block.domain / block.train_split
-    return TrainingSet.read(ssc_dataset(sim / block.train_split, comm_range=block.comm_range,
-                                        cav_root=gen_root)).with_generated_views(block.generated_views)
+        return TrainingSet.read(ssc_dataset(train, comm_range=block.comm_range))
+    return TrainingSet.read(ssc_dataset(train, comm_range=block.comm_range, cav_root=generated_root(block, root))
+                            ).with_generated_views(block.generated_views)
 
 
 def _train_arm(block: SscConfig, root: Path, data_name: str, seed: int, weights: np.ndarray) -> str:
@@ -353,8 +357,9 @@ def train_arms(block: SscConfig, root: Path, arms: Sequence[str], weights: np.nd
         return
     ctx = multiprocessing.get_context("spawn")    # no fork of a process whose OpenMP pool runs
     with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-        for done in pool.map(_train_arm, *zip(*[(block, Path(root), arm, seed, weights) for arm, seed in jobs])):
-            log(f"ssc: the networks of {done} are trained")
+        futures = [pool.submit(_train_arm, block, Path(root), arm, seed, weights) for arm, seed in jobs]
+        for future in futures:                    # a worker's error is raised here
+            log(f"ssc: the networks of {future.result()} are trained")
 
 
 # ---------------------------------------------------------------- prediction and scores
@@ -474,8 +479,9 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
     data = training_set(block, root, "oracle")
     weights = class_weights(data.class_counts(), eps=block.class_weight_eps)
     skipped: dict[str, str] = {}
-    gen_root = Path(root) / block.generated / block.domain / block.train_split
-    generated = "generated" in block.data and unavailable(gen_root) is None
+    # why the generated arm cannot run (None: it runs), asked once for training and for scoring
+    gen_unavailable = unavailable(generated_root(block, root)) if "generated" in block.data else None
+    generated = "generated" in block.data and gen_unavailable is None
     train_arms(block, root, ["oracle", "generated"] if generated else ["oracle"], weights, log)
     noisy_ds = test_ds.with_options(position_std=block.noisy.position_std,
                                     heading_std_deg=block.noisy.heading_std_deg,
@@ -499,8 +505,7 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
             rows[method] = {**scored(conf, n_boot=block.bootstrap, seed=block.seed), **per_seed[0][1]}
         tables[setting] = rows
     if "generated" in block.data:   # TYP Table 1 for SSC: the cooperating clouds of training generated
-        reason = unavailable(gen_root)
-        if reason is None:
+        if generated:
             gen = training_set(block, root, "generated")
             gen_trained = [train_seed(block, gen, weights, seed, out, log, data_name="generated")
                            for seed in block.training_seeds]
@@ -516,8 +521,8 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
                                 "ratio_iou": ratio_interval(conf, oracle, "iou", **boot), "frames": len(test_ds)}
             tables["generated"] = rows
         else:
-            skipped["generated"] = reason
-            log(f"ssc: the generated rows are skipped: {reason}")
+            skipped["generated"] = gen_unavailable
+            log(f"ssc: the generated rows are skipped: {gen_unavailable}")
     robustness = robustness_curves(block, trained[0], test_ds)
     sample = test_ds[0]     # the gallery: the first test frame by every method, first seed
     gallery = (ego_map(test_ds, 0, sample), {m: predict(trained[0], sample, m) for m in block.methods},
