@@ -2,6 +2,7 @@
 stage 1 or the stage-2 adapter with other settings beside it (issue 13's ablations).
 
     python bench/generator_probe.py [--split val] [--stage1 '{"min_snr": 0.0}' ...] [--adapter '{"epochs": 30}' ...]
+        [--scales 1,2,4,8]
 
 For every model it prints:
 - the held-out z_0 error: the mean squared error of the UNet's z_0 estimate on the split's
@@ -10,7 +11,9 @@ For every model it prints:
   line at high noise has learned less than the average scene, and its samples start from it);
 - the sample scores of :mod:`tasks.genscore` (IoU, seen / unseen, above ground, object hit
   rate) of the stage's own sampler on every (ego, reference) pair of the split, and (stage 1)
-  the sample-to-sample IoU of two noise seeds.
+  the sample-to-sample IoU of two noise seeds; the trained adapters' samples at each of
+  ``--scales`` (their residuals times the scale, ``selftrain.adapter_scale``). The z_0 errors are
+  the adapters' as trained (scale 1).
 Retrained models go to /tmp/generator_probe/ (their checkpoints resume); the committed
 artifacts are not touched. The numbers quoted in reports/generation_ablation.md come from here.
 """
@@ -91,6 +94,8 @@ def main() -> None:
     ap.add_argument("--split", default="val", help="held-out target split of data/sim scored")
     ap.add_argument("--stage1", action="append", default=[], help="JSON overrides of stage1 (unet: a dict)")
     ap.add_argument("--adapter", action="append", default=[], help="JSON overrides of stage2 (conditions: 1 or 2)")
+    ap.add_argument("--scales", type=lambda text: [float(v) for v in text.split(",")], default=[],
+                    help="adapter scales to sample the trained adapters with, e.g. 1,2,4,8 (default: selftrain's)")
     args = ap.parse_args()
     cfg, root = load_config("params.yaml"), Path(".")
     grid = cfg.voxelize.sensor_grid("target")
@@ -118,7 +123,9 @@ def main() -> None:
             adapter = stage2.load_adapter(folder / name, "selftrain")
             errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, ego[conditions], adapter)
             print(f"selftrain {name}: z_0 error {fmt(errs)}")
-            print(f"  samples: {scores(base.with_adapter(adapter), data, spread=False)}", flush=True)
+            for scale in args.scales or [base.adapter_scale]:
+                pipe = dataclasses.replace(base.with_adapter(adapter), adapter_scale=scale)
+                print(f"  samples, adapter scale {scale:g}: {scores(pipe, data, spread=False)}", flush=True)
     for text in args.stage1:
         over = json.loads(text)
         block = dataclasses.replace(cfg.stage1, **{k: v for k, v in over.items() if k != "unet"}, checkpoint_every=10 ** 9)

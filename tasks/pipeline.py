@@ -4,8 +4,14 @@ A pipeline holds every trained part TYP needs to turn an ego's cloud into a refe
 E_x, Q_x, G_x (``x_vqvae``), the box-map encoder E_y (``box_encoder``), the stage-1 UNet
 ε_θ (``unet``, its EMA weights), the adapter F_AD (``adapter``; none for stage 1 alone), and
 the settings that are not weights: the ground-relative voxel grid, the sampler and its step
-count, the post-processing thresholds (TYP §4.1) and the point statistics of the target
-domain that turn occupied voxels into a realistic cloud (:class:`PointStats`).
+count, the post-processing thresholds (TYP §4.1), the adapter's conditioning scale and the point
+statistics of the target domain that turn occupied voxels into a realistic cloud (:class:`PointStats`).
+
+``adapter_scale`` multiplies F_AD's residuals at sampling time, as diffusers' T2I-Adapter
+pipelines' ``adapter_conditioning_scale`` does (1: as trained). The adapter's outputs start at
+zero (:class:`models.adapter.ZeroAdapter`) and grow only as far as its short training takes
+them; its residuals point the right way but are too small to move the frozen UNet much
+(reports/generation_ablation.md measures the scale).
 
 ``save_pretrained(dir)`` writes one sub-folder per component (``model.safetensors`` +
 ``config.json``, :mod:`tasks.artifacts`) and ``pipeline.json``; ``from_pretrained(dir)`` reads
@@ -179,6 +185,7 @@ class TYPPipeline:
     num_inference_steps: int
     thresholds: dict
     point_stats: PointStats = dataclasses.field(default_factory=PointStats.single)
+    adapter_scale: float = 1.0
 
     @property
     def conditions(self) -> int:
@@ -206,7 +213,7 @@ class TYPPipeline:
                                    "none")
                 latents = [self.unet.normalize(self.x_vqvae.encode_pre_quant(
                     torch.from_numpy(np.asarray(g, dtype=np.float32)).to(dev))) for g in grids]
-                features = self.adapter(torch.cat(latents, dim=1))
+                features = [self.adapter_scale * f for f in self.adapter(torch.cat(latents, dim=1))]
             scheduler = make_scheduler(sampler or self.sampler, betas(self.schedule, self.train_timesteps),
                                        prediction_type=self.unet.config.get("prediction", "epsilon"))
             cond = self.unet.normalize_cond(self.box_encoder.encode_pre_quant(y))
@@ -276,7 +283,7 @@ class TYPPipeline:
             "grid": self.grid.to_dict(), "schedule": self.schedule, "train_timesteps": self.train_timesteps,
             "sampler": self.sampler, "num_inference_steps": self.num_inference_steps,
             "thresholds": self.thresholds, "point_stats": self.point_stats.to_dict(),
-            "components": [n for n in COMPONENTS if getattr(self, n) is not None]})
+            "adapter_scale": self.adapter_scale, "components": [n for n in COMPONENTS if getattr(self, n) is not None]})
         return folder
 
     @classmethod
@@ -295,7 +302,8 @@ class TYPPipeline:
             return cls(**parts, grid=Grid.from_dict(meta["grid"], where=str(folder / PIPELINE_JSON)),
                        schedule=meta["schedule"], train_timesteps=int(meta["train_timesteps"]), sampler=meta["sampler"],
                        num_inference_steps=int(meta["num_inference_steps"]), thresholds=dict(meta["thresholds"]),
-                       point_stats=PointStats.from_dict(meta["point_stats"]))
+                       point_stats=PointStats.from_dict(meta["point_stats"]),
+                       adapter_scale=float(meta.get("adapter_scale", 1.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise TypError(folder / PIPELINE_JSON, "pipeline", f"the settings the {stage} stage writes",
                            f"{type(exc).__name__}: {exc}") from None

@@ -49,6 +49,7 @@ def test_override_is_key_by_key_and_keeps_other_defaults():
     ({"tracking": {"experiment": ""}}, "tracking.experiment", "non-empty"),
     ({"voxelize": 3}, "voxelize", "a mapping"),
     ({"stage1": {"ego_only": "no"}}, "stage1.ego_only", "true or false"),
+    ({"selftrain": {"adapter_scale": 0.0}}, "selftrain.adapter_scale", "> 0"),
 ])
 def test_bad_values_name_the_dotted_field(raw, field, expected):
     with pytest.raises(TypError) as info:

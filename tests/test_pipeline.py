@@ -1,5 +1,8 @@
 """The generator as one object: what conditions it, reproducibility, the zero-initialised adapter,
 save/load round trips with named errors, and turning occupancy back into a realistic cloud."""
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -73,6 +76,36 @@ def test_condition_is_the_normalised_box_latent_and_the_adapter_sees_x_e():
     assert len(seen["adapter"]) == 1 and torch.allclose(seen["adapter"][0], expected_ego)  # once per sample
 
 
+def test_adapter_scale_multiplies_every_residual_the_unet_gets():
+    pipe = _pipeline()
+    with torch.no_grad():
+        for p in pipe.adapter.parameters():
+            p.add_(0.01)
+    x_e, y_r = _inputs()
+    got = {}
+    unet_forward = pipe.unet.forward
+
+    def unet_spy(z_t, t, cond, adapter_features=None):
+        got.setdefault("features", [f.clone() for f in adapter_features])
+        return unet_forward(z_t, t, cond, adapter_features)
+
+    pipe.unet.forward = unet_spy
+    scaled = dataclasses.replace(pipe, adapter_scale=3.0)
+    scaled.logits(x_e, y_r, seed=0)
+    with torch.no_grad():
+        raw = pipe.adapter(pipe.unet.normalize(pipe.x_vqvae.encode_pre_quant(torch.from_numpy(x_e))))
+    assert len(got["features"]) == len(raw) and all(float(r.abs().max()) > 0 for r in raw)
+    for f, r in zip(got["features"], raw):
+        torch.testing.assert_close(f, 3.0 * r)
+    # a larger scale moves the sample further from stage 1's; scale 1 is the adapter as trained
+    pipe.unet.forward = unet_forward
+    stage1 = pipe.with_adapter(None).logits(x_e, y_r, seed=0)
+    moved = [float((dataclasses.replace(pipe, adapter_scale=s).logits(x_e, y_r, seed=0) - stage1).abs().mean())
+             for s in (1.0, 4.0)]
+    assert 0 < moved[0] < moved[1]
+    assert torch.equal(dataclasses.replace(pipe, adapter_scale=1.0).logits(x_e, y_r, seed=0), pipe.logits(x_e, y_r, seed=0))
+
+
 def test_a_resimulation_conditioned_adapter_needs_the_resimulated_view():
     pipe = _pipeline(conditions=2)
     x_e, y_r = _inputs()
@@ -94,6 +127,13 @@ def test_save_and_load_give_the_same_samples(tmp_path):
     x_e, y_r = _inputs()
     assert torch.equal(pipe.logits(x_e, y_r, seed=5), back.logits(x_e, y_r, seed=5))
     assert back.point_stats == pipe.point_stats and back.grid == GRID
+    # the conditioning scale travels with the weights; a folder written before it existed samples at 1
+    dataclasses.replace(pipe, adapter_scale=2.5).save_pretrained(tmp_path / "scaled")
+    assert TYPPipeline.from_pretrained(tmp_path / "scaled").adapter_scale == 2.5
+    meta = json.loads((tmp_path / "scaled" / "pipeline.json").read_text())
+    del meta["adapter_scale"]
+    (tmp_path / "scaled" / "pipeline.json").write_text(json.dumps(meta))
+    assert TYPPipeline.from_pretrained(tmp_path / "scaled").adapter_scale == 1.0
 
 
 def test_damaged_artifacts_are_named(tmp_path):

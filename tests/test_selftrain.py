@@ -9,7 +9,7 @@ import torch
 
 from tasks import generate
 from tasks.genscore import BANDS, band_label, cell_distance
-from tasks.selftrain import (TABLE4, dummy_ego_tuples, pseudo_references, resim_variant, target_frames, variant_of,
+from tasks.selftrain import (TABLE4, training_fields, dummy_ego_tuples, pseudo_references, resim_variant, target_frames, variant_of,
                              variants_to_run)
 from tasks.voxel_data import ViewSet
 from typ.config import config_from_dict
@@ -43,6 +43,14 @@ def test_switches_pick_the_table4_row_and_ablation_runs_every_row():
     assert (resim.self_training, resim.dummy_ego, resim.conditions) == (True, True, 2) and resim.discriminator
     assert [(v.discriminator, v.self_training, v.dummy_ego) for v in TABLE4] == [
         (False, False, False), (True, False, False), (True, True, False), (True, True, True)]
+
+
+def test_the_adapter_scale_is_a_sampling_setting_not_part_of_the_training_key():
+    tiny, scaled = _cfg().selftrain, _cfg(adapter_scale=9.0).selftrain
+    assert tiny.adapter_scale == 4.0 and scaled.adapter_scale == 9.0
+    assert training_fields(tiny) == training_fields(scaled)          # same checkpoints: no retraining
+    assert "adapter_scale" not in training_fields(tiny) and training_fields(tiny)["epochs"] == tiny.epochs
+    assert training_fields(_cfg(epochs=7).selftrain) != training_fields(tiny)
 
 
 def test_pseudo_references_sit_on_labelled_vehicles_inside_the_band(tmp_path, scenes):

@@ -390,7 +390,8 @@ class SelftrainConfig:
     also trains every row of Table 4, whatever the switches say. ``generator``: which adapter
     the written generator (``<out>/generator``) carries: ``typ`` (the switches' variant) or
     ``typ_resim`` (the same recipe on the re-simulation-conditioned adapter; needs
-    ``stage2.resim``). The generator samples with ``sampler`` / ``sample_steps``.
+    ``stage2.resim``). The generator samples with ``sampler`` / ``sample_steps`` and multiplies the
+    adapter's residuals by ``adapter_scale`` (diffusers' ``adapter_conditioning_scale``; 1: as trained).
     """
 
     discriminator: bool
@@ -422,10 +423,11 @@ class SelftrainConfig:
     lr_schedule: Literal["constant", "cosine"] = "cosine"
     ema_decay: float = 0.999
     generator: Literal["typ", "typ_resim"] = "typ"
+    adapter_scale: float = 1.0
 
     def check(self, where: str, name: str) -> None:
         _positive_fields(self, where, name, "pseudo_references", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "sample_steps", "max_distance", "warmup_steps")
+                         "sample_steps", "max_distance", "warmup_steps", "adapter_scale")
         if not 0 <= self.min_distance < self.max_distance:
             raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
                            self.min_distance)
