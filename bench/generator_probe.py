@@ -11,7 +11,7 @@ For every model it prints:
   line at high noise has learned less than the average scene, and its samples start from it);
 - the sample scores of :mod:`tasks.genscore` (IoU, seen / unseen, above ground, object hit
   rate) of the stage's own sampler on every (ego, reference) pair of the split, and (stage 1)
-  the sample-to-sample IoU of two noise seeds; the trained adapters' samples at each of
+  the sample-to-sample IoU of two noise seeds; the adapters' samples (trained and retrained) at each of
   ``--scales`` (their residuals times the scale, ``selftrain.adapter_scale``). The z_0 errors are
   the adapters' as trained (scale 1).
 Retrained models go to /tmp/generator_probe/ (their checkpoints resume); the committed
@@ -166,7 +166,9 @@ def main() -> None:
                                     log_fn=lambda values, step: None)
         errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, ego[conditions], fitted)
         print(f"adapter {text} ({time.perf_counter() - t0:.0f} s): z_0 error {fmt(errs)}")
-        print(f"  samples: {scores(base.with_adapter(fitted), data, spread=False)}", flush=True)
+        for scale in args.scales or [base.adapter_scale]:
+            pipe = dataclasses.replace(base.with_adapter(fitted), adapter_scale=scale)
+            print(f"  samples, adapter scale {scale:g}: {scores(pipe, data, spread=False)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -47,7 +47,7 @@ def test_switches_pick_the_table4_row_and_ablation_runs_every_row():
 
 def test_the_adapter_scale_is_a_sampling_setting_not_part_of_the_training_key():
     tiny, scaled = _cfg().selftrain, _cfg(adapter_scale=9.0).selftrain
-    assert tiny.adapter_scale == 4.0 and scaled.adapter_scale == 9.0
+    assert tiny.adapter_scale == 1.5 and scaled.adapter_scale == 9.0
     assert training_fields(tiny) == training_fields(scaled)          # same checkpoints: no retraining
     assert "adapter_scale" not in training_fields(tiny) and training_fields(tiny)["epochs"] == tiny.epochs
     assert training_fields(_cfg(epochs=7).selftrain) != training_fields(tiny)
