@@ -18,7 +18,6 @@ come from here.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -32,23 +31,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 OUT = Path("/tmp/detector_probe")
 
 
-def override(block, changes: dict):
-    """``block`` (a frozen dataclass) with ``changes`` applied key by key, nested blocks included;
-    lists become tuples as the config loader makes them."""
-    fields = {}
-    for key, value in changes.items():
-        current = getattr(block, key)
-        if dataclasses.is_dataclass(current):
-            fields[key] = override(current, value)
-        else:
-            fields[key] = tuple(value) if isinstance(value, list) else value
-    return dataclasses.replace(block, **fields)
-
-
 def fusion_block(root: Path, changes: dict):
+    """The workspace's fusion block with ``changes`` merged in key by key (nested blocks too) and
+    checked, as params.yaml overrides are (:func:`typ.config.load_config`)."""
     from typ.config import load_config
 
-    return override(load_config(root / "params.yaml").fusion, changes)
+    return load_config(root / "params.yaml", overrides={"fusion": changes}).fusion
 
 
 def _train(job: tuple) -> float:

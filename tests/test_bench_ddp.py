@@ -1,12 +1,9 @@
 """bench/ddp.py's comparison and page (the timed runs themselves happen in `make bench`)."""
-import importlib.util
-from pathlib import Path
-
 import torch
 
-SPEC = importlib.util.spec_from_file_location("ddp_bench", Path(__file__).resolve().parents[1] / "bench" / "ddp.py")
-ddp_bench = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(ddp_bench)
+from bench_modules import load_bench
+
+ddp_bench = load_bench("ddp")
 
 
 def test_speedups_parameter_differences_and_verdict(tmp_path):

@@ -6,7 +6,6 @@ the fusion timing at one repetition on a tiny detector, and reports/bench.md's d
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import os
 import subprocess
@@ -15,18 +14,11 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench_modules import ROOT, load_bench
 
 
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _load("pipeline")
-report = _load("report")
+bench = load_bench("pipeline")
+report = load_bench("report")
 
 MACHINE = {"cores": 2, "cpu": "Test CPU", "torch": "2.13.0", "torch_threads": 1, "python": "3.11.7"}
 STAMP = {"when": "2025-01-01 00:00 UTC", "machine": MACHINE}

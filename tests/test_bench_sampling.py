@@ -4,16 +4,13 @@ The bench itself (training, sampling) is run by hand; these load the file withou
 """
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
 
-PATH = Path(__file__).resolve().parents[1] / "bench" / "sampling.py"
-spec = importlib.util.spec_from_file_location("bench_sampling", PATH)
-bench = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(bench)
+from bench_modules import load_bench
+
+bench = load_bench("sampling")
 
 
 def row(sampler, steps, seconds, jsd, iou, mmd=1e-3, dp=0.01, iou_ref=0.9):

@@ -438,13 +438,11 @@ def test_reference_sets_are_sized_like_a_model_row(cfg):
 
 
 def test_the_bench_sweep_is_a_valid_config_covering_table_one():
-    import importlib.util
     from pathlib import Path
 
-    repo = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("bench_ddpm", repo / "bench" / "ddpm.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    from bench_modules import ROOT as repo, load_bench
+
+    bench = load_bench("ddpm")
     sweep_params = bench.sweep_params
 
     for mode in ({}, {"quick": True}, {"medium": True}):

@@ -1,21 +1,15 @@
 """bench/generator_probe.py: the z_0 estimate it scores every kind of network by."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench_modules import load_bench
 
 
 @pytest.fixture(scope="module")
 def probe():
-    spec = importlib.util.spec_from_file_location("generator_probe", ROOT / "bench" / "generator_probe.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("generator_probe")
 
 
 @pytest.mark.parametrize("a", [0.9, 0.3, 0.02])
