@@ -117,15 +117,20 @@ def main() -> None:
     print(f"z_0 error at t/T = {LEVELS}; per-cell training mean as predictor: {mean:.3f}")
     print(f"stage 1 (artifacts): z_0 error {fmt(z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps))}")
     print(f"  samples: {scores(base, data, spread=True)}", flush=True)
+
+    def adapter_samples(adapter) -> None:
+        """The scores of ``adapter``'s samples at each of ``--scales`` (default: selftrain's)."""
+        for scale in args.scales or [base.adapter_scale]:
+            pipe = dataclasses.replace(base.with_adapter(adapter), adapter_scale=scale)
+            print(f"  samples, adapter scale {scale:g}: {scores(pipe, data, spread=False)}", flush=True)
+
     folder = stage1.replica_dir(root / cfg.selftrain.out, cfg.stage1.seed)
     for name, conditions in (("disc_st_dummy", 1), ("typ_resim", 2)):
         if (folder / name / "config.json").is_file():
             adapter = stage2.load_adapter(folder / name, "selftrain")
             errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, ego[conditions], adapter)
             print(f"selftrain {name}: z_0 error {fmt(errs)}")
-            for scale in args.scales or [base.adapter_scale]:
-                pipe = dataclasses.replace(base.with_adapter(adapter), adapter_scale=scale)
-                print(f"  samples, adapter scale {scale:g}: {scores(pipe, data, spread=False)}", flush=True)
+            adapter_samples(adapter)
     for text in args.stage1:
         over = json.loads(text)
         block = dataclasses.replace(cfg.stage1, **{k: v for k, v in over.items() if k != "unet"}, checkpoint_every=10 ** 9)
@@ -166,9 +171,7 @@ def main() -> None:
                                     log_fn=lambda values, step: None)
         errs = z0_errors(ldm, base.schedule, base.train_timesteps, z0, cond, eps, ego[conditions], fitted)
         print(f"adapter {text} ({time.perf_counter() - t0:.0f} s): z_0 error {fmt(errs)}")
-        for scale in args.scales or [base.adapter_scale]:
-            pipe = dataclasses.replace(base.with_adapter(fitted), adapter_scale=scale)
-            print(f"  samples, adapter scale {scale:g}: {scores(pipe, data, spread=False)}", flush=True)
+        adapter_samples(fitted)
 
 
 if __name__ == "__main__":

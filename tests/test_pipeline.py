@@ -90,20 +90,23 @@ def test_adapter_scale_multiplies_every_residual_the_unet_gets():
         return unet_forward(z_t, t, cond, adapter_features)
 
     pipe.unet.forward = unet_spy
-    scaled = dataclasses.replace(pipe, adapter_scale=3.0)
-    scaled.logits(x_e, y_r, seed=0)
     with torch.no_grad():
         raw = pipe.adapter(pipe.unet.normalize(pipe.x_vqvae.encode_pre_quant(torch.from_numpy(x_e))))
-    assert len(got["features"]) == len(raw) and all(float(r.abs().max()) > 0 for r in raw)
-    for f, r in zip(got["features"], raw):
-        torch.testing.assert_close(f, 3.0 * r)
-    # a larger scale moves the sample further from stage 1's; scale 1 is the adapter as trained
+    assert all(float(r.abs().max()) > 0 for r in raw)
+    for scale in (3.0, 1.0):
+        got.clear()
+        dataclasses.replace(pipe, adapter_scale=scale).logits(x_e, y_r, seed=0)
+        assert len(got["features"]) == len(raw)
+        for f, r in zip(got["features"], raw):
+            torch.testing.assert_close(f, scale * r)
+    # scale 1 (the default) is the adapter as trained: its residuals reach the UNet bit for bit
+    assert pipe.adapter_scale == 1.0 and all(torch.equal(f, r) for f, r in zip(got["features"], raw))
+    # a larger scale moves the sample further from stage 1's
     pipe.unet.forward = unet_forward
     stage1 = pipe.with_adapter(None).logits(x_e, y_r, seed=0)
     moved = [float((dataclasses.replace(pipe, adapter_scale=s).logits(x_e, y_r, seed=0) - stage1).abs().mean())
              for s in (1.0, 4.0)]
     assert 0 < moved[0] < moved[1]
-    assert torch.equal(dataclasses.replace(pipe, adapter_scale=1.0).logits(x_e, y_r, seed=0), pipe.logits(x_e, y_r, seed=0))
 
 
 def test_a_resimulation_conditioned_adapter_needs_the_resimulated_view():
