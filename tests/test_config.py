@@ -2,6 +2,7 @@
 import pytest
 import yaml
 
+from typ import config
 from typ.config import config_from_dict, flatten, load_config, profile_defaults
 from typ.errors import TypError
 
@@ -95,11 +96,11 @@ def test_every_profile_loads_and_has_the_same_keys():
     # small inherits what it does not set, and overrides what it sets
     tiny, small = as_dict(config_from_dict({"profile": "tiny"})), as_dict(config_from_dict({"profile": "small"}))
     assert small["stage1"]["replicas"] == 3 and small["stage1"]["unet"] == tiny["stage1"]["unet"]
-    assert small["simulate"]["scenarios"]["target"]["train"] > tiny["simulate"]["scenarios"]["target"]["train"]
+    assert small["vqvae"]["x"]["epochs"] == 30 and small["vqvae"]["x"]["block_out_channels"] == tiny["vqvae"]["x"]["block_out_channels"]
     assert profile_defaults("small")["voxelize"] == profile_defaults("tiny")["voxelize"]
 
 
-def test_per_domain_lengths_are_replaced_whole_by_params():
+def test_per_domain_lengths_are_replaced_whole_by_params(monkeypatch):
     tiny = config_from_dict({}).simulate
     assert tiny.for_domain("target") == (2, 3, 3)              # the profile's target scenes
     flat = config_from_dict({"simulate": {"domains": {}, "frames": 5, "agents_min": 2, "agents_max": 2}}).simulate
@@ -107,13 +108,18 @@ def test_per_domain_lengths_are_replaced_whole_by_params():
     one = config_from_dict({"simulate": {"domains": {"source": {"frames": 3, "agents_min": 2, "agents_max": 2}}}})
     assert set(one.simulate.domains) == {"source"}              # not merged with the profile's target entry
     # a profile that extends another refines its per-domain lengths instead
-    small = config_from_dict({"profile": "small"}).simulate
-    assert set(small.domains) == {"source", "target", "real_cav"} and small.for_domain("target") == (2, 3, 3)
+    profiles = yaml.safe_load(open("typ/profiles.yaml"))
+    profiles["small"] = {"extends": "tiny", "simulate": {"domains": {"real_cav": {"frames": 8}}}}
+    monkeypatch.setattr(config, "_profiles", lambda: profiles)
+    domains = profile_defaults("small")["simulate"]["domains"]
+    assert set(domains) == {"source", "target", "real_cav"} and domains["target"] == profiles["tiny"]["simulate"]["domains"]["target"]
+    assert domains["real_cav"] == {"frames": 8}
 
 
-def test_small_profile_is_tiny_with_a_bigger_fusion_benchmark():
+def test_small_profile_is_tiny_with_the_generators_seeds_and_table_rows():
     tiny, small = config_from_dict({"profile": "tiny"}), config_from_dict({"profile": "small"})
-    assert small.fusion.detector == tiny.fusion.detector and small.stage1.unet == tiny.stage1.unet
-    assert small.fusion.seeds == 3 and small.fusion.steps > tiny.fusion.steps
-    assert small.simulate.for_domain("real_cav")[0] > tiny.simulate.for_domain("real_cav")[0]
-    assert small.simulate.scenarios["real_cav"]["train"] > tiny.simulate.scenarios["real_cav"]["train"]
+    assert small.stage1.replicas == 3 and tiny.stage1.replicas == 1 and small.stage1.unet == tiny.stage1.unet
+    assert small.stage2.one_stage and small.selftrain.ablation and not (tiny.stage2.one_stage or tiny.selftrain.ablation)
+    assert (small.vqvae.x.gamma, small.vqvae.x.epochs) == (2.0, 30) and small.vqvae.x.num_codes == tiny.vqvae.x.num_codes
+    # the data, the detectors and the SSC networks are tiny's: small only adds generator work
+    assert (small.simulate, small.fusion, small.ssc) == (tiny.simulate, tiny.fusion, tiny.ssc)

@@ -138,7 +138,7 @@ def test_fine_tuning_needs_the_same_method(setup, tmp_path):
 
 @pytest.mark.parametrize("profile", ["tiny", "small"])
 def test_the_profiles_v2xvit_starts_as_the_single_agent_detector(profile):
-    """tiny's and small's V2X-ViT keep the backbone map's width and stride: warm-started, the
+    """tiny's V2X-ViT (small keeps tiny's fusion) keeps the backbone map's width and stride: warm-started, the
     whole module (head included) starts from the single-agent detector, not from a fresh head."""
     cfg = config_from_dict({"profile": profile}).fusion
     single = build_model("late", cfg).detector
