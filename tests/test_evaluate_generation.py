@@ -73,3 +73,26 @@ def test_the_report_says_which_table_rows_were_not_trained(tmp_path, ablation):
     assert ("stage2.one_stage: true" in table5) is not ablation
     assert table4.count("\n| ") == (1 + 4 if ablation else 1 + 1)  # header + one row per method
     assert gen.label("one_stage") in table5 if ablation else gen.label("one_stage") not in table5
+
+
+def test_the_one_stage_model_samples_as_every_other_row(tmp_path, monkeypatch):
+    """Table 5 compares training recipes: the one-stage model gets its own UNet, adapter and
+    schedule, and the sampler of the other rows (steps, thresholds, the adapter scale)."""
+    from tasks import artifacts
+    from tasks.pipeline import TYPPipeline
+
+    base = TYPPipeline("x_vq", "y_enc", "stage1 unet", None, "grid", "linear", 1000, "dpmsolver++", 10,
+                       {"threshold": 0.3}, adapter_scale=1.5)
+    monkeypatch.setattr(gen, "base_pipeline", lambda *a: base)
+    monkeypatch.setattr(gen.stage2, "load_adapter", lambda folder, stage="stage2": f"adapter of {folder.parent.name}")
+    monkeypatch.setattr(artifacts, "load_module", lambda folder, build, stage: ("joint unet", {"schedule": "cosine",
+                                                                                            "train_timesteps": "500"}))
+    cfg = config_from_dict({"stage2": {"one_stage": True}})
+    unet = stage1.replica_dir(tmp_path / cfg.stage2.out, 0) / "one_stage" / "unet"
+    unet.mkdir(parents=True)
+    (unet / "config.json").write_text("{}")
+    one = gen.pipelines(cfg, tmp_path, 0, None, None, None)["one_stage"]
+    assert (one.unet, one.adapter, one.schedule, one.train_timesteps) == ("joint unet", "adapter of one_stage", "cosine", 500)
+    assert (one.adapter_scale, one.thresholds, one.sampler, one.num_inference_steps) == (1.5, {"threshold": 0.3},
+                                                                                        "dpmsolver++", 10)
+    assert (one.x_vqvae, one.box_encoder, one.grid) == ("x_vq", "y_enc", "grid") and base.unet == "stage1 unet"
