@@ -72,15 +72,20 @@ class LocalServer:
                "--port", str(port), "--analytics-off", "--ui" if ui else "--no-ui"]
         # A signal that arrives between the fork and `server = ...` would leave a server nobody
         # knows about: hold SIGTERM/SIGINT until the handle exists, then stop it on any way out.
+        # A signal held meanwhile is raised as the mask is restored, so the restore lies inside
+        # the `try` that stops the server (restored in a `finally` before it, a SIGTERM sent while
+        # the child started left that child running).
         held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
         try:
             with open(log, "ab") as out:
                 proc = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
                                         stdin=subprocess.DEVNULL, start_new_session=True)
-            server = cls(proc, host, port, log)
-        finally:
+        except BaseException:
             signal.pthread_sigmask(signal.SIG_SETMASK, held)
+            raise
+        server = cls(proc, host, port, log)
         try:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
             server.wait_healthy(timeout)
         except BaseException:  # SIGTERM (as SystemExit), Ctrl-C, a failed start: no server left behind
             server.stop()

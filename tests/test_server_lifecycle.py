@@ -174,3 +174,27 @@ def test_the_server_takes_sigterm_though_it_was_started_with_the_signals_held(tm
         server.stop(grace=60.0)
     assert server.process.returncode != -signal.SIGKILL   # it ended on SIGTERM, not on the SIGKILL after the grace
     assert _port_free(server.port)
+
+
+def test_a_sigterm_held_while_the_server_forks_stops_that_server(tmp_path, monkeypatch):
+    """A SIGTERM that reaches ``typ serve`` while LocalServer.start holds the signals around its fork
+    is raised as the mask is restored. It must then stop the child it just started: restored in a
+    `finally` before the `try` that stops the server, the signal left the child running (the race
+    `test_sigterm_while_serve_starts_its_server_leaves_no_server` hit now and then)."""
+    import flows.server as server_module
+
+    started = []
+    real_popen = subprocess.Popen
+
+    def popen_then_sigterm(cmd, **kwargs):   # a stand-in server; the SIGTERM is held until the mask is restored
+        child = real_popen([sys.executable, "-c", server_module.UNBLOCK_AND_EXEC, "-c", "import time; time.sleep(120)"],
+                           **kwargs)
+        started.append(child)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return child
+
+    monkeypatch.setattr(server_module.subprocess, "Popen", popen_then_sigterm)
+    with pytest.raises(server_module.Terminated) as ended, server_module.terminate_raises():
+        server_module.LocalServer.start(tmp_path / "prefect", ui=False, timeout=60, env=_env(tmp_path))
+    assert ended.value.code == 128 + signal.SIGTERM
+    assert len(started) == 1 and started[0].poll() is not None, "the child started under the held SIGTERM still runs"
