@@ -118,6 +118,29 @@ def write_curve(path: Path, history: list[dict[str, float]]) -> Path:
     return write_records(path, history, columns=["step"])
 
 
+#: checkpoint key of torch's generators. Code inside a step may draw from them (the EMA
+#: quantizer's dead-code restarts and k-means do): a resumed run restores them, or it draws other
+#: numbers than the uninterrupted run from the first restart on.
+RNG_KEY = "torch_rng"
+
+
+def rng_state() -> dict[str, torch.Tensor]:
+    """torch's CPU generator and, on CUDA, the current device's."""
+    state = {"cpu": torch.get_rng_state()}
+    if distributed.device().type == "cuda":
+        state["cuda"] = torch.cuda.get_rng_state()
+    return state
+
+
+def set_rng_state(state: dict[str, torch.Tensor] | None) -> None:
+    """Restore :func:`rng_state`'s generators; ``None`` (a checkpoint from before they were kept): leave them."""
+    if state is None:
+        return
+    torch.set_rng_state(state["cpu"])
+    if "cuda" in state and distributed.device().type == "cuda":
+        torch.cuda.set_rng_state(state["cuda"])
+
+
 def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, float]],
              get_state: Callable[[], dict], set_state: Callable[[dict], None], checkpoint_dir: Path,
              checkpoint_every: int, log_fn: Callable[[dict[str, float], int], None] | None = None,
@@ -133,6 +156,7 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
     saved = load_latest(checkpoint_dir)
     if saved is not None:
         history = list(saved.pop("history", []))
+        set_rng_state(saved.pop(RNG_KEY, None))
         set_state(saved)
         start = int(saved["step"])
     if distributed.world_size() > 1:
@@ -162,7 +186,7 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
                 log_fn(values, step)
             done = step + 1
             if main and (done % checkpoint_every == 0 or done == total_steps):
-                save_checkpoint(checkpoint_dir, done, {**get_state(), "history": history})
+                save_checkpoint(checkpoint_dir, done, {**get_state(), "history": history, RNG_KEY: rng_state()})
             bar.update(task, advance=1, description=f"loss {values['loss']:.4f}")
     if curve is not None and main:
         write_curve(Path(curve), history)
