@@ -13,7 +13,8 @@ as soon as its first output is complete, then rerun:
 The stage processes share one Prefect server and one MLflow database, started once per test
 session (tests/test_determinism.py and the CLI case of tests/test_bad_inputs.py use the same
 helpers, and the determinism test compares with the same uninterrupted run), so each process
-pays only its imports. The training stage is slow (two more processes): it runs with TYP_SLOW=1.
+pays only its imports. The training stage adds about a minute (two more processes); it runs in
+`make test` (issue 13: a resumed run must equal an uninterrupted one).
 """
 from __future__ import annotations
 
@@ -31,15 +32,13 @@ from flows.server import LocalServer
 
 REPO = Path(__file__).resolve().parents[1]
 TMP_PREFIX = ".tmp-"
-SLOW = bool(os.environ.get("TYP_SLOW"))
-slow = pytest.mark.skipif(not SLOW, reason="slow: runs with TYP_SLOW=1")
 #: what the uninterrupted run and the crashed run go through
-STAGES = ("simulate", "voxelize", "vqvae") if SLOW else ("simulate", "voxelize")
+STAGES = ("simulate", "voxelize", "vqvae")
 
 SMALL = {
     "profile": "tiny",
     "simulate": {"frames": 2, "azimuth_step_deg": 0.5, "agents_min": 2, "agents_max": 2, "workers": 1,
-                 "scenarios": {"source": {"train": 0, "test": 0}, "target": {"train": 4, "val": 0, "test": 1},
+                 "scenarios": {"source": {"train": 0, "test": 0}, "target": {"train": 4, "val": 1, "test": 1},
                                "real_cav": {"train": 0, "test": 0}}},
     "voxelize": {"workers": 1},
     "vqvae": {"x": {"epochs": 3, "block_out_channels": [8, 16, 16, 16]},
@@ -167,9 +166,6 @@ def crashed(services, reference, tmp_path_factory):
     # the rerun of simulate completes; voxelize is killed after its first scene
     kill_when(start_stages(root, services, "simulate", "voxelize"), lambda: scenes())
     seen["voxelize"] = final_names(vox)
-    if "vqvae" not in STAGES:
-        run_stages(root, services, "voxelize")
-        return root, seen
     kill_when(start_stages(root, services, "voxelize", "vqvae"), lambda: checkpoints())
     seen["vqvae"] = {str(p.relative_to(root)): _loads(p) for p in sorted((root / "artifacts").rglob("*.pt"))
                      if not any(part.startswith(".") for part in p.relative_to(root).parts)}
@@ -208,8 +204,6 @@ def test_rerun_after_kill_equals_uninterrupted_byte_for_byte(reference, crashed,
     assert [rel for rel in got if got[rel] != expected[rel]] == []
 
 
-@pytest.mark.slow
-@slow
 def test_killed_training_resumes_to_the_uninterrupted_model(reference, crashed):
     from tasks.artifacts import read_weights
     from tasks.training import checkpoints
@@ -219,12 +213,13 @@ def test_killed_training_resumes_to_the_uninterrupted_model(reference, crashed):
     assert any("/checkpoints/" in rel for rel in after_kill)
     assert "artifacts/vqvae/x/model.safetensors" not in after_kill, "x finished training before the kill"
     assert {rel: state for rel, state in after_kill.items() if state != "ok"} == {}  # every visible file is whole
-    for kind in ("x", "y"):
-        run_dirs = list((root / "artifacts" / "vqvae" / kind / "checkpoints").iterdir())
-        assert len(run_dirs) == 1 and checkpoints(run_dirs[0]), kind
+    run_dirs = list((root / "artifacts" / "vqvae" / "x" / "checkpoints").iterdir())
+    assert len(run_dirs) == 1 and checkpoints(run_dirs[0])   # the rerun resumed the killed run's folder
+    for kind in ("x", "y"):   # y is pooled (no weights) in the tiny profile; x is the trained network
         got = read_weights(root / "artifacts" / "vqvae" / kind, "vqvae")
         want = read_weights(reference / "artifacts" / "vqvae" / kind, "vqvae")
-        assert got.keys() == want.keys()
-        worst = max((got[k].double() - want[k].double()).abs().max().item() for k in got if got[k].numel())
+        assert got.keys() == want.keys() and (got or kind == "y")
+        worst = max(((got[k].double() - want[k].double()).abs().max().item() for k in got if got[k].numel()),
+                    default=0.0)
         assert worst <= MODEL_ATOL, (kind, worst)
     assert not [p for p in (root / "artifacts").rglob(f"{TMP_PREFIX}*")], "temporaries left after the rerun"

@@ -2,7 +2,7 @@
 
 Two throwaway projects run the stages through the CLI, each in its own process with a
 different ``PYTHONHASHSEED`` (so iteration over sets of strings differs): the session's
-uninterrupted run of tests/test_crash_safety.py (simulate, voxelize; + vqvae with TYP_SLOW=1)
+uninterrupted run of tests/test_crash_safety.py (simulate, voxelize, vqvae)
 and one more here. Their output trees must match byte for byte and their metrics JSON once the
 timing fields are dropped. Training is compared through the saved weights: torch.save archives
 carry a per-save id, so their bytes differ by design.
@@ -14,7 +14,7 @@ import re
 
 import pytest
 
-from test_crash_safety import STAGES, make_project, reference, run_stages, services, slow, tree  # noqa: F401
+from test_crash_safety import STAGES, make_project, reference, run_stages, services, tree  # noqa: F401
 
 TIMING = re.compile(r"seconds|per_second")
 
@@ -40,16 +40,13 @@ def test_outputs_are_byte_identical(two_runs, folder):
     assert [rel for rel in a if a[rel] != b[rel]] == []
 
 
-@pytest.mark.parametrize("stage", [pytest.param(s, marks=[pytest.mark.slow, slow] if s == "vqvae" else [])
-                                   for s in ("simulate", "voxelize", "vqvae")])
+@pytest.mark.parametrize("stage", ["simulate", "voxelize", "vqvae"])
 def test_metrics_are_identical_but_for_timings(two_runs, stage):
     a, b = (json.loads((root / "metrics" / f"{stage}.json").read_text()) for root in two_runs)
     assert without_timing(a) == without_timing(b)
     assert without_timing(a) != {}
 
 
-@pytest.mark.slow
-@slow
 def test_trained_weights_are_identical(two_runs):
     import torch
 
@@ -59,5 +56,5 @@ def test_trained_weights_are_identical(two_runs):
         a, b = (root / "artifacts" / "vqvae" / kind for root in two_runs)
         assert read_config(a, "vqvae") == read_config(b, "vqvae")
         wa, wb = read_weights(a, "vqvae"), read_weights(b, "vqvae")
-        assert wa.keys() == wb.keys() and wa
+        assert wa.keys() == wb.keys() and (wa or kind == "y")   # y is pooled (no weights) in the tiny profile
         assert all(torch.equal(wa[k], wb[k]) for k in wa), kind
