@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -21,12 +22,41 @@ from typing import Iterator
 
 from typ.errors import TypError
 
-#: signals held while a server starts or stops (see :meth:`LocalServer.start`)
-HELD_SIGNALS = {signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
-#: ``python -c`` program: unblock :data:`HELD_SIGNALS`, then exec ``python <its arguments>`` (same pid)
-UNBLOCK_AND_EXEC = ("import os, signal, sys; signal.pthread_sigmask(signal.SIG_UNBLOCK, {%s}); "
-                    "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])"
-                    % ", ".join(f"signal.{s.name}" for s in sorted(HELD_SIGNALS)))
+#: signals held while a server starts or stops (see :func:`signals_held`)
+HELD_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Defer :data:`HELD_SIGNALS` until the block ends, then hand each one that came meanwhile to
+    the handler it would have met (first come, first handled; ``Terminated`` or KeyboardInterrupt
+    is raised there, after the code inside has finished).
+
+    A Python-level deferral, not a signal mask: ``pthread_sigmask`` blocks the calling thread only,
+    and the kernel hands a process-directed SIGTERM to any thread that does not block it (a
+    pytest-xdist worker runs execnet's threads, a user's process may run others). Python runs
+    handlers in the main thread whichever thread took the signal, so the mask let ``Terminated``
+    out between the fork and ``server = ...`` and left that server running. Ignored signals stay
+    ignored; outside the main thread (where Python runs no handlers) nothing is changed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    previous: dict[int, object] = {}
+    try:
+        for s in HELD_SIGNALS:
+            if signal.getsignal(s) not in (signal.SIG_IGN, None):
+                previous[s] = signal.signal(s, lambda signum, frame: came.append(signum))
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for s in dict.fromkeys(came):
+            handler = previous[s]
+            if callable(handler):
+                handler(s, None)
+            else:   # SIG_DFL: end the process as the signal would have
+                signal.raise_signal(s)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -64,31 +94,22 @@ class LocalServer:
                      "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
         child_env.pop("PREFECT_API_URL", None)
         log = home / "server.log"
-        # The child inherits the signal mask held below across fork and exec: unblock the held
-        # signals before exec'ing prefect (a shim, not preexec_fn, which is unsafe beside threads).
-        # Blocked, the server ignored SIGTERM and Ctrl-C: every stop waited out its grace for
-        # SIGKILL, and pytest-xdist killed a worker stopping one in its cleanup, leaving it running.
-        cmd = [sys.executable, "-c", UNBLOCK_AND_EXEC, "-m", "prefect", "server", "start", "--host", host,
-               "--port", str(port), "--analytics-off", "--ui" if ui else "--no-ui"]
+        cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
+               "--analytics-off", "--ui" if ui else "--no-ui"]
         # A signal that arrives between the fork and `server = ...` would leave a server nobody
-        # knows about: hold SIGTERM/SIGINT until the handle exists, then stop it on any way out.
-        # A signal held meanwhile is raised as the mask is restored, so the restore lies inside
-        # the `try` that stops the server (restored in a `finally` before it, a SIGTERM sent while
-        # the child started left that child running).
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
+        # knows about: hold SIGTERM/SIGINT/SIGHUP until the handle exists; it is raised as the hold
+        # ends, inside the `try` that stops the server on any way out.
+        server = None
         try:
-            with open(log, "ab") as out:
-                proc = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
-        except BaseException:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
-            raise
-        server = cls(proc, host, port, log)
-        try:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+            with signals_held():
+                with open(log, "ab") as out:
+                    server = cls(subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
+                                                  stdin=subprocess.DEVNULL, start_new_session=True),
+                                 host, port, log)
             server.wait_healthy(timeout)
-        except BaseException:  # SIGTERM (as SystemExit), Ctrl-C, a failed start: no server left behind
-            server.stop()
+        except BaseException:  # SIGTERM (as Terminated), Ctrl-C, a failed start: no server left behind
+            if server is not None:
+                server.stop()
             raise
         return server
 
@@ -111,8 +132,7 @@ class LocalServer:
     def stop(self, grace: float = 10.0) -> None:
         """SIGTERM the server's process group (uvicorn and its services), then SIGKILL what is left.
         A second SIGTERM or Ctrl-C meanwhile waits until the server is gone."""
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
-        try:
+        with signals_held():
             try:
                 if self.process.poll() is None:
                     os.killpg(self.process.pid, signal.SIGTERM)
@@ -124,8 +144,6 @@ class LocalServer:
             except ProcessLookupError:
                 pass
             self.process.wait(grace)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 @contextlib.contextmanager
