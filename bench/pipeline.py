@@ -754,12 +754,9 @@ def shared_server(proj: Path, env: dict) -> Iterator[tuple[dict, float]]:
     from flows.server import LocalServer
 
     t0 = time.perf_counter()
-    server = LocalServer.start(proj / ".prefect", ui=False, env=env, timeout=600)
-    started = time.perf_counter() - t0
-    try:
+    with LocalServer.running(proj / ".prefect", ui=False, env=env, timeout=600) as server:
+        started = time.perf_counter() - t0
         yield {**env, "PREFECT_API_URL": server.api_url}, started
-    finally:
-        server.stop()
 
 
 def mlflow_starts(proj: Path, since: float) -> dict[str, float]:

@@ -82,7 +82,40 @@ class LocalServer:
     @classmethod
     def start(cls, home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = True,
               timeout: float = 120.0, env: dict | None = None) -> "LocalServer":
-        """Start the server with its state (sqlite ``prefect.db``, logs) in ``home``; wait until healthy."""
+        """Start the server with its state (sqlite ``prefect.db``, logs) in ``home``; wait until healthy.
+        A signal on the way out of here can still come before the caller holds the handle: code that
+        must stop the server on SIGTERM whenever it comes opens :meth:`running` instead."""
+        server = None
+        try:
+            with signals_held():   # a signal meanwhile is raised as the hold ends, `server` set
+                server = cls._launch(home, host=host, port=port, ui=ui, env=env)
+            server.wait_healthy(timeout)
+        except BaseException:  # SIGTERM (as Terminated), Ctrl-C, a failed start: no server left behind
+            if server is not None:
+                server.stop()
+            raise
+        return server
+
+    @classmethod
+    @contextlib.contextmanager
+    def running(cls, home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = True,
+                timeout: float = 120.0, env: dict | None = None) -> Iterator["LocalServer"]:
+        """:meth:`start`'s server while open, stopped on every way out, a signal at any moment included."""
+        server = None
+        try:
+            with signals_held():
+                server = cls._launch(home, host=host, port=port, ui=ui, env=env)
+            server.wait_healthy(timeout)
+            yield server
+        finally:
+            if server is not None:
+                server.stop()
+
+    @classmethod
+    def _launch(cls, home: Path, *, host: str, port: int | None, ui: bool, env: dict | None) -> "LocalServer":
+        """Fork ``prefect server start`` in its own session; not yet healthy. The caller holds the
+        signals (:func:`signals_held`) until it holds the handle this returns: a signal between the
+        fork and ``server = ...`` would leave a server nobody knows about."""
         home = Path(home).resolve()
         home.mkdir(parents=True, exist_ok=True)
         port = port or free_port(host)
@@ -96,22 +129,10 @@ class LocalServer:
         log = home / "server.log"
         cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
                "--analytics-off", "--ui" if ui else "--no-ui"]
-        # A signal that arrives between the fork and `server = ...` would leave a server nobody
-        # knows about: hold SIGTERM/SIGINT/SIGHUP until the handle exists; it is raised as the hold
-        # ends, inside the `try` that stops the server on any way out.
-        server = None
-        try:
-            with signals_held():
-                with open(log, "ab") as out:
-                    server = cls(subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
-                                                  stdin=subprocess.DEVNULL, start_new_session=True),
-                                 host, port, log)
-            server.wait_healthy(timeout)
-        except BaseException:  # SIGTERM (as Terminated), Ctrl-C, a failed start: no server left behind
-            if server is not None:
-                server.stop()
-            raise
-        return server
+        with open(log, "ab") as out:
+            process = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
+                                       stdin=subprocess.DEVNULL, start_new_session=True)
+        return cls(process, host, port, log)
 
     def wait_healthy(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -156,13 +177,12 @@ def prefect_api(home: Path, *, host: str = "127.0.0.1", port: int | None = None,
     if given:
         yield given, None
         return
-    server = LocalServer.start(home, host=host, port=port, ui=ui, timeout=timeout)
-    os.environ["PREFECT_API_URL"] = server.api_url
-    try:
-        yield server.api_url, server
-    finally:
-        os.environ.pop("PREFECT_API_URL", None)
-        server.stop()
+    with LocalServer.running(home, host=host, port=port, ui=ui, timeout=timeout) as server:
+        try:
+            os.environ["PREFECT_API_URL"] = server.api_url
+            yield server.api_url, server
+        finally:
+            os.environ.pop("PREFECT_API_URL", None)
 
 
 class Terminated(SystemExit):

@@ -210,6 +210,39 @@ def test_a_sigterm_held_while_the_server_forks_stops_that_server(tmp_path, monke
     assert len(started) == 1 and started[0].returncode == -signal.SIGTERM   # stopped by LocalServer.stop
 
 
+def test_a_signal_just_after_the_server_is_healthy_stops_it(tmp_path, monkeypatch):
+    """prefect_api (``typ run all``, ``typ serve``, ``typ with-server``) must stop its server whenever a
+    SIGTERM lands, also in the instant after LocalServer.start returned and before its own `try`:
+    there it left the server running. The signal is stood in for by the first read of ``api_url``
+    raising ``Terminated``, which is where the old code took it outside any `try`."""
+    import flows.server as server_module
+
+    started = []
+    real_popen = subprocess.Popen
+
+    def popen(cmd, **kwargs):   # a stand-in server
+        started.append(real_popen([sys.executable, "-c", "import time; time.sleep(120)"], **kwargs))
+        return started[-1]
+
+    def api_url(self):
+        raise server_module.Terminated(128 + signal.SIGTERM)
+
+    monkeypatch.setattr(server_module.subprocess, "Popen", popen)
+    monkeypatch.setattr(server_module.LocalServer, "wait_healthy", lambda self, timeout: None)
+    monkeypatch.setattr(server_module.LocalServer, "api_url", property(api_url))
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    try:
+        with pytest.raises(server_module.Terminated):
+            with server_module.prefect_api(tmp_path / "prefect"):
+                pass
+    finally:
+        if started and started[0].poll() is None:
+            started[0].kill()
+            assert False, "the server started before the signal still runs"
+    assert len(started) == 1 and started[0].returncode == -signal.SIGTERM
+    assert "PREFECT_API_URL" not in os.environ
+
+
 def test_signals_held_defers_each_signal_to_the_handler_it_would_have_met():
     """Ctrl-C inside the hold becomes KeyboardInterrupt as the block ends, after the code inside
     ran to its end; handlers are restored and an ignored signal stays ignored."""
