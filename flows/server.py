@@ -80,27 +80,13 @@ class LocalServer:
         return f"http://{self.host}:{self.port}"
 
     @classmethod
-    def start(cls, home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = True,
-              timeout: float = 120.0, env: dict | None = None) -> "LocalServer":
-        """Start the server with its state (sqlite ``prefect.db``, logs) in ``home``; wait until healthy.
-        A signal on the way out of here can still come before the caller holds the handle: code that
-        must stop the server on SIGTERM whenever it comes opens :meth:`running` instead."""
-        server = None
-        try:
-            with signals_held():   # a signal meanwhile is raised as the hold ends, `server` set
-                server = cls._launch(home, host=host, port=port, ui=ui, env=env)
-            server.wait_healthy(timeout)
-        except BaseException:  # SIGTERM (as Terminated), Ctrl-C, a failed start: no server left behind
-            if server is not None:
-                server.stop()
-            raise
-        return server
-
-    @classmethod
     @contextlib.contextmanager
     def running(cls, home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = True,
                 timeout: float = 120.0, env: dict | None = None) -> Iterator["LocalServer"]:
-        """:meth:`start`'s server while open, stopped on every way out, a signal at any moment included."""
+        """A server with its state (sqlite ``prefect.db``, logs) in ``home``, healthy while open and
+        stopped on every way out, a SIGTERM at any moment included: the handle is assigned inside
+        the `try` that stops it (a ``start`` that returned the server left a gap before the
+        caller's own `try`)."""
         server = None
         try:
             with signals_held():

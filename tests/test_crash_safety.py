@@ -18,6 +18,7 @@ pays only its imports. The training stage adds about a minute (two more processe
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -60,8 +61,10 @@ def stage_env(config: pytest.Config, tmp_path_factory) -> dict:
     """Environment for stage processes: one Prefect server and one MLflow database per session."""
     if _ENV not in config.stash:
         home = tmp_path_factory.mktemp("services")
-        server = LocalServer.start(home / "prefect", ui=False, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
-        config.add_cleanup(server.stop)
+        services = contextlib.ExitStack()
+        server = services.enter_context(LocalServer.running(home / "prefect", ui=False, timeout=300,
+                                                            env={**os.environ, "OMP_NUM_THREADS": "1"}))
+        config.add_cleanup(services.close)
         config.stash[_ENV] = {
             **os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
             "PREFECT_API_URL": server.api_url, "PREFECT_HOME": str(home / "prefect"),

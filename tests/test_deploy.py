@@ -35,14 +35,11 @@ PARAMS = {
 def server(tmp_path_factory):
     home = tmp_path_factory.mktemp("prefect-home")
     env = {**os.environ, "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "5", "PREFECT_LOGGING_LEVEL": "WARNING"}
-    srv = LocalServer.start(home, ui=False, env=env, timeout=180)
-    try:
+    with LocalServer.running(home, ui=False, env=env, timeout=180) as srv:
         yield srv
-    finally:
-        srv.stop()
-        assert srv.process.poll() is not None
-        with pytest.raises(ProcessLookupError):  # nothing of its process group is left
-            os.killpg(srv.process.pid, 0)
+    assert srv.process.poll() is not None
+    with pytest.raises(ProcessLookupError):  # nothing of its process group is left
+        os.killpg(srv.process.pid, 0)
 
 
 @pytest.fixture

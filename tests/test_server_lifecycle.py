@@ -158,27 +158,25 @@ def test_with_server_without_a_runnable_command_is_bad_input(tmp_path, argv, say
 
 
 def test_the_server_takes_sigterm_though_it_was_started_with_the_signals_held(tmp_path):
-    """LocalServer.start holds SIGTERM/SIGINT/SIGHUP around its fork. Held by a signal mask, which
+    """LocalServer.running holds SIGTERM/SIGINT/SIGHUP around its fork. Held by a signal mask, which
     is inherited across exec, they were blocked in the server: stop() waited out its grace and
     SIGKILLed it, and a pytest-xdist worker killed meanwhile left the server running. The server
     must have none of them blocked and stop on SIGTERM."""
     from flows.server import HELD_SIGNALS, LocalServer
 
-    server = LocalServer.start(tmp_path / "prefect", ui=False, timeout=180, env=_env(tmp_path))
-    try:
+    with LocalServer.running(tmp_path / "prefect", ui=False, timeout=180, env=_env(tmp_path)) as server:
         status = Path(f"/proc/{server.process.pid}/status")
         if status.exists():   # Linux: the server's blocked-signal mask has none of the held signals
             blocked = int(next(l for l in status.read_text().splitlines() if l.startswith("SigBlk:")).split()[1], 16)
             assert not any(blocked >> (int(s) - 1) & 1 for s in HELD_SIGNALS), hex(blocked)
         assert _healthy(server.api_url)
-    finally:
-        server.stop(grace=60.0)
+        server.stop(grace=60.0)   # before running's own stop: grace enough for SIGTERM under load
     assert server.process.returncode != -signal.SIGKILL   # it ended on SIGTERM, not on the SIGKILL after the grace
     assert _port_free(server.port)
 
 
 def test_a_sigterm_held_while_the_server_forks_stops_that_server(tmp_path, monkeypatch):
-    """A SIGTERM that reaches ``typ serve`` while LocalServer.start forks must stop the child it just
+    """A SIGTERM that reaches ``typ serve`` while LocalServer.running forks must stop the child it just
     started. Held by a signal mask it did not: the kernel gave the signal to another thread (here a
     stand-in for execnet's, in CI the pytest-xdist worker's own), Python raised ``Terminated`` in the
     main thread before ``server = ...`` and the child ran on. The sleep after the kill gives that
@@ -200,7 +198,8 @@ def test_a_sigterm_held_while_the_server_forks_stops_that_server(tmp_path, monke
     monkeypatch.setattr(server_module.subprocess, "Popen", popen_then_sigterm)
     try:
         with pytest.raises(server_module.Terminated) as ended, server_module.terminate_raises():
-            server_module.LocalServer.start(tmp_path / "prefect", ui=False, timeout=60, env=_env(tmp_path))
+            with server_module.LocalServer.running(tmp_path / "prefect", ui=False, timeout=60, env=_env(tmp_path)):
+                pass
     finally:
         other.set()
         if started and started[0].poll() is None:
@@ -212,7 +211,7 @@ def test_a_sigterm_held_while_the_server_forks_stops_that_server(tmp_path, monke
 
 def test_a_signal_just_after_the_server_is_healthy_stops_it(tmp_path, monkeypatch):
     """prefect_api (``typ run all``, ``typ serve``, ``typ with-server``) must stop its server whenever a
-    SIGTERM lands, also in the instant after LocalServer.start returned and before its own `try`:
+    SIGTERM lands, also in the instant after the server was healthy and before its own `try`:
     there it left the server running. The signal is stood in for by the first read of ``api_url``
     raising ``Terminated``, which is where the old code took it outside any `try`."""
     import flows.server as server_module
