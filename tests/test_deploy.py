@@ -5,8 +5,8 @@ a temporary PREFECT_HOME, started and stopped (by process group) through ``flows
 basic auth on as typ always starts it: a request without the secret of its PREFECT_HOME is refused.
 ``typ serve`` runs as a subprocess against it (PREFECT_API_URL set, so it starts no server of
 its own); the tests trigger the on-demand deployment with ``run_deployment``, wait for the run
-and check the stage's outputs, and wait for the every-minute watched-folder deployment to run on
-its schedule.
+and check the stage's outputs, wait for the every-minute watched-folder deployment to run on its
+schedule, and see a run on another project's root refused.
 """
 from __future__ import annotations
 
@@ -143,6 +143,34 @@ def test_served_deployment_runs_on_demand_and_on_schedule(api, served):
 
         done = _wait_for("a scheduled run of watch-generate", scheduled_run_done, 150, every=2)
         assert done[0].auto_scheduled
+
+
+def test_a_deployment_run_on_another_root_is_refused(api, served, tmp_path):
+    """Whoever may create flow runs chooses their parameters: a run pointed at another project, or
+    at a params file outside this one, would write and delete there as the user of ``typ serve``.
+    Such a run fails naming the parameter, and nothing is written where it pointed."""
+    from prefect import get_client
+    from prefect.deployments import run_deployment
+
+    root, log, _ = served
+    other = tmp_path / "someone-else"
+    other.mkdir()
+    # a params file that points the stage's output there too
+    foreign = {**PARAMS, "simulate": {**PARAMS["simulate"], "out": str(other / "sim")}}
+    (other / "params.yaml").write_text(yaml.safe_dump(foreign))
+    with get_client(sync_client=True) as client:
+        for name in ("typ-stage/on-demand", "watch-generate/scheduled"):
+            _deployment(client, name, served)
+    stage = {"stage": "simulate"}
+    for name, parameters, field in (("typ-stage/on-demand", {**stage, "root": str(other)}, "root"),
+                                    ("typ-stage/on-demand", {**stage, "params": os.path.relpath(other / "params.yaml",
+                                                                                                root)}, "params"),
+                                    ("typ-stage/on-demand", {**stage, "params": str(other / "params.yaml")}, "params"),
+                                    ("watch-generate/scheduled", {"root": str(other)}, "root")):
+        run = run_deployment(name, parameters=parameters, timeout=300, poll_interval=1)
+        assert run.state.is_failed(), f"{name} {parameters}: {run.state}\n{log.read_text()[-4000:]}"
+        assert f"{field}: expected " in run.state.message and "TypError" in run.state.message, run.state.message
+    assert sorted(p.name for p in other.iterdir()) == ["params.yaml"]
 
 
 CALLS: dict[str, int] = {}
