@@ -100,8 +100,11 @@ def _new_secret(path: Path) -> None:
 
 
 def _read_secret(path: Path) -> str:
-    # non-blocking: a FIFO in its place must not hang the start; a regular file reads as usual
-    with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK)) as f:
+    try:   # non-blocking: a FIFO in its place must not hang the start; a regular file reads as usual
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as exc:   # a dangling link, a folder without read permission
+        raise TypError(path, "file", "a readable file holding the Prefect API secret", exc.strerror) from None
+    with os.fdopen(fd) as f:
         st = os.fstat(f.fileno())
         if not stat.S_ISREG(st.st_mode):
             raise TypError(path, "file", "a regular file holding the Prefect API secret", stat.filemode(st.st_mode))

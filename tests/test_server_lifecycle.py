@@ -310,6 +310,14 @@ def test_the_api_secret_is_made_once_owner_only_and_kept(tmp_path):
         api_auth_string(home)
     secret.unlink()   # rotating: a new secret
     assert api_auth_string(home) != first
+    secret.unlink()
+    secret.symlink_to(tmp_path / "nowhere")   # not a secret, and not one to make there
+    with pytest.raises(TypError, match="a readable file"):
+        api_auth_string(home)
+    secret.unlink()
+    os.mkfifo(secret)   # must not wait for a writer
+    with pytest.raises(TypError, match="a regular file"):
+        api_auth_string(home)
 
 
 #: runs the CLI's environment set-up for a root and prints what it left for Prefect
