@@ -749,14 +749,15 @@ def git_snapshot(proj: Path, env: dict) -> None:
 
 @contextlib.contextmanager
 def shared_server(proj: Path, env: dict) -> Iterator[tuple[dict, float]]:
-    """(env with PREFECT_API_URL, seconds the server took to start): one local Prefect server for
-    everything run inside, as `make run` (`typ with-server dvc repro`) has; stopped on the way out."""
+    """(env with the server's PREFECT_API_URL and secret, seconds the server took to start): one
+    local Prefect server for everything run inside, as `make run` (`typ with-server dvc repro`)
+    has; stopped on the way out."""
     from flows.server import LocalServer
 
     t0 = time.perf_counter()
     with LocalServer.running(proj / ".prefect", ui=False, env=env, timeout=600) as server:
         started = time.perf_counter() - t0
-        yield {**env, "PREFECT_API_URL": server.api_url}, started
+        yield {**env, **server.client_env}, started
 
 
 def mlflow_starts(proj: Path, since: float) -> dict[str, float]:

@@ -39,6 +39,16 @@ def _setup_env(root: Path) -> None:
     extra = [n for n in os.environ.get("PREFECT_LOGGING_EXTRA_LOGGERS", "").split(",") if n.strip()]
     os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"] = ",".join(extra + [n for n in STAGE_LOGGERS if n not in extra])
     os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
+    if not os.environ.get("PREFECT_API_URL") and "prefect" not in sys.modules:
+        # every Prefect server this process tree starts (a local one, Prefect's temporary one)
+        # asks for the project's secret and every client sends it; a server that PREFECT_API_URL
+        # names is the user's, with the user's auth. Prefect reads its settings once, when
+        # imported: after that (typ called in-process) its client would not send what its
+        # temporary server, started later with this environment, asks for
+        from flows.server import api_auth_string
+
+        auth = api_auth_string(Path(os.environ["PREFECT_HOME"]))
+        os.environ["PREFECT_SERVER_API_AUTH_STRING"] = os.environ["PREFECT_API_AUTH_STRING"] = auth
     rank = int(os.environ.get("RANK", "0"))
     if rank > 0:  # torchrun: each rank's temporary Prefect server keeps its own sqlite file
         os.environ["PREFECT_HOME"] = str(Path(os.environ["PREFECT_HOME"]) / f"rank-{rank}")
@@ -111,8 +121,8 @@ def _cmd_with_server(args) -> int:
 
     with terminate_raises(), prefect_api(Path(os.environ["PREFECT_HOME"])) as (url, server):
         if server is not None:
-            print(f"typ: Prefect server {url} for `{' '.join(args.cmd)}` (log {server.log})", file=sys.stderr,
-                  flush=True)
+            print(f"typ: Prefect server {url} for `{' '.join(args.cmd)}` (log {server.log}, API secret in "
+                  f"{server.auth_file})", file=sys.stderr, flush=True)
         return run_child(args.cmd)
 
 
@@ -152,8 +162,8 @@ def _cmd_serve(args) -> int:
     with terminate_raises(), prefect_api(Path(os.environ["PREFECT_HOME"]), host=args.host, port=args.port,
                                          ui=True) as (url, server):
         if server is not None:
-            print(f"Prefect server {server.ui_url} (state in {os.environ['PREFECT_HOME']}, log {server.log})",
-                  flush=True)
+            print(f"Prefect server {server.ui_url} (state in {os.environ['PREFECT_HOME']}, log {server.log}; "
+                  f"the UI and the prefect CLI ask for the secret in {server.auth_file})", flush=True)
         else:
             print(f"Prefect API {url}", flush=True)
         from flows.deploy import serve

@@ -8,18 +8,20 @@
   ``prefect deployment run typ-stage/on-demand -p stage=voxelize``).
 
 Deployment parameters are the params file and the project root: each run reads the params
-in effect when it starts, as ``typ run`` does. Flows are referenced by module path, so the
-runner's flow-run processes import them from the installed project.
+in effect when it starts, as ``typ run`` does, and a run on another root or with a params file
+outside the project is refused (``served_project_only``). Flows are referenced by module path,
+so the runner's flow-run processes import them from the installed project.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import yaml
 from prefect import flow
 from prefect.types.entrypoint import EntrypointType
 
-from flows.pipeline import pipeline_flow, run_stage
+from flows.pipeline import SERVED_ROOT_ENV, pipeline_flow, run_stage, served_project_only
 from typ.config import load_config
 from typ.formats.opv2v import list_scenarios
 from typ.io import write_text
@@ -31,6 +33,7 @@ DERIVED_PARAMS = ".params.yaml"
 def stage_flow(stage: str = "simulate", params: str = "params.yaml", root: str = ".",
                task_runner: str = "thread") -> dict:
     """One stage, as ``typ run <stage>`` runs it."""
+    served_project_only(params, root)
     return run_stage(stage, params=params, root=root, task_runner=task_runner)
 
 
@@ -67,6 +70,7 @@ def watch_flow(params: str = "params.yaml", root: str = ".") -> dict:
     Nothing new: returns at once, without loading any model. Otherwise ``generate`` runs over
     every (dataset, split) folder of the watched tree (it skips scenarios already done).
     """
+    served_project_only(params, root)
     root_path = Path(root)
     cfg = load_config(root_path / params)
     watch, out = (root_path / cfg.serve.watch).resolve(), (root_path / cfg.serve.watch_out).resolve()
@@ -109,4 +113,8 @@ def serve(root: Path, params: str = "params.yaml", only: list[str] | None = None
         raise TypError("typ serve", "--only", f"deployment names from {sorted(available)}", unknown)
     chosen = [d for name, d in available.items() if not only or name in only]
     kwargs = {"query_seconds": poll_seconds} if poll_seconds else {}
-    prefect_serve(*chosen, **kwargs)
+    os.environ[SERVED_ROOT_ENV] = str(Path(root).resolve())   # the flow runs' processes inherit it
+    try:
+        prefect_serve(*chosen, **kwargs)
+    finally:
+        os.environ.pop(SERVED_ROOT_ENV, None)

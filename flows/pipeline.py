@@ -31,6 +31,31 @@ TRAINING = tuple(s for s in STAGES if s not in PER_SCENE)
 WITHOUT_TORCH = ("simulate", "voxelize")
 
 
+#: the project root ``typ serve`` serves, in its environment and so in its flow runs' (flows.deploy)
+SERVED_ROOT_ENV = "TYP_SERVED_ROOT"
+
+
+def served_project_only(params: str, root: str) -> None:
+    """In a run of a deployment, refuse a ``root`` other than the project ``typ serve`` serves and a
+    ``params`` file outside it. A run's parameters are whatever its creator sent to the API, and a
+    stage writes and deletes under the paths its params name, as the user who runs ``typ serve``.
+    Called in-process (``typ run all``), the root is the CLI's own and nothing is checked."""
+    from prefect.context import FlowRunContext
+
+    ctx = FlowRunContext.get()
+    if ctx is None or ctx.flow_run is None or ctx.flow_run.deployment_id is None:
+        return
+    where = f"flow run {ctx.flow_run.name} of {ctx.flow.name}"
+    served = os.environ.get(SERVED_ROOT_ENV)
+    if not served:
+        raise TypError(where, "root", "a deployment served by `typ serve`, which names its project", root)
+    project = Path(served)
+    if not isinstance(root, str) or Path(root).resolve() != project:
+        raise TypError(where, "root", f"this project's root {project}", root)
+    if not isinstance(params, str) or not Path(os.path.normpath(project / params)).is_relative_to(project):
+        raise TypError(where, "params", f"a params file inside {project}", params)
+
+
 def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_runner: str = "thread",
               address: str | None = None) -> dict:
     """Run one stage's flow; per-scene stages fan out on ``task_runner`` (thread | dask)."""
@@ -51,6 +76,7 @@ def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_
 def pipeline_flow(params: str = "params.yaml", root: str = ".", task_runner: str = "thread",
                   address: str | None = None) -> dict:
     """Every stage in order under one parent MLflow run (stage runs nest under it)."""
+    served_project_only(params, root)
     cfg = load_config(Path(root) / params)
     results = {}
     with stage_run("pipeline", cfg, root=Path(root)) as parent:

@@ -1,6 +1,7 @@
 """A local Prefect server for ``typ serve``, ``typ run all`` and ``typ with-server``: ``prefect
-server start`` on loopback, sqlite in ``PREFECT_HOME``, analytics off; stopped by killing the
-process group it was started in, on every way out of the code that started it.
+server start`` on loopback, sqlite in ``PREFECT_HOME``, analytics off, basic auth with the
+project's secret (:func:`api_auth_string`); stopped by killing the process group it was started
+in, on every way out of the code that started it.
 
 Prefect is not imported here: it reads ``PREFECT_API_URL`` once, when first imported, so the
 caller starts the server, exports its URL, and only then imports the flows.
@@ -9,8 +10,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import threading
@@ -21,6 +24,7 @@ from pathlib import Path
 from typing import Iterator
 
 from typ.errors import TypError
+from typ.io import TMP_PREFIX
 
 #: signals held while a server starts or stops (see :func:`signals_held`)
 HELD_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
@@ -59,6 +63,60 @@ def signals_held() -> Iterator[None]:
                 signal.raise_signal(s)
 
 
+#: the file in ``PREFECT_HOME`` that holds the API secret of the servers typ starts
+AUTH_FILE = "api-auth"
+#: the user name in that secret: the UI and ``curl -u`` take ``user:password``
+AUTH_USER = "typ"
+
+
+def api_auth_string(home: Path) -> str:
+    """The basic-auth string ``typ:<secret>`` that the Prefect servers typ starts with their state in
+    ``home`` ask for (``PREFECT_SERVER_API_AUTH_STRING``) and their clients send
+    (``PREFECT_API_AUTH_STRING``): without it any local user could start a stage, with parameters of
+    their choosing, that runs as the owner of ``typ serve``.
+
+    Kept in ``home/api-auth`` and the same on every run; made on first use under a temporary name
+    opened with mode 0600 (never readable by others, not even while written) and linked into place,
+    so that two first uses at once agree on one secret. Delete the file to rotate the secret."""
+    path = Path(home) / AUTH_FILE
+    if not path.exists():
+        _new_secret(path)
+    return _read_secret(path)
+
+
+def _new_secret(path: Path) -> None:
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    tmp = path.with_name(f"{TMP_PREFIX}{path.name}.{os.getpid()}.{secrets.token_hex(4)}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        with os.fdopen(fd, "w") as out:
+            out.write(f"{AUTH_USER}:{secrets.token_urlsafe(32)}\n")
+            out.flush()
+            os.fsync(out.fileno())
+        with contextlib.suppress(FileExistsError):   # another typ made it first: its secret stands
+            os.link(tmp, path)
+    finally:
+        tmp.unlink()
+
+
+def _read_secret(path: Path) -> str:
+    try:   # non-blocking: a FIFO in its place must not hang the start; a regular file reads as usual
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as exc:   # a dangling link, a folder without read permission
+        raise TypError(path, "file", "a readable file holding the Prefect API secret", exc.strerror) from None
+    with os.fdopen(fd) as f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise TypError(path, "file", "a regular file holding the Prefect API secret", stat.filemode(st.st_mode))
+        if st.st_uid != os.geteuid() or st.st_mode & 0o077:
+            raise TypError(path, "mode", f"a file of yours only you can read: `chmod 600 {path}` (or delete it to "
+                           "make a new secret)", f"{stat.filemode(st.st_mode)}, owner uid {st.st_uid}")
+        secret = f.read(4096).strip()
+    if not secret:
+        raise TypError(path, "secret", "the Prefect API secret (delete the empty file to make a new one)", "")
+    return secret
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
         s.bind((host, 0))
@@ -66,14 +124,28 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 
 class LocalServer:
-    """One ``prefect server start`` child process in its own session (process group)."""
+    """One ``prefect server start`` child process in its own session (process group), asking every
+    request but its health check for ``auth`` (basic auth)."""
 
-    def __init__(self, process: subprocess.Popen, host: str, port: int, log: Path):
-        self.process, self.host, self.port, self.log = process, host, port, log
+    def __init__(self, process: subprocess.Popen, host: str, port: int, home: Path, auth: str):
+        self.process, self.host, self.port, self.home, self.auth = process, host, port, home, auth
+
+    @property
+    def log(self) -> Path:
+        return self.home / "server.log"
+
+    @property
+    def auth_file(self) -> Path:
+        return self.home / AUTH_FILE
 
     @property
     def api_url(self) -> str:
         return f"http://{self.host}:{self.port}/api"
+
+    @property
+    def client_env(self) -> dict[str, str]:
+        """What a Prefect client needs in its environment to use this server."""
+        return {"PREFECT_API_URL": self.api_url, "PREFECT_API_AUTH_STRING": self.auth}
 
     @property
     def ui_url(self) -> str:
@@ -103,22 +175,24 @@ class LocalServer:
         signals (:func:`signals_held`) until it holds the handle this returns: a signal between the
         fork and ``server = ...`` would leave a server nobody knows about."""
         home = Path(home).resolve()
-        home.mkdir(parents=True, exist_ok=True)
+        home.mkdir(mode=0o700, parents=True, exist_ok=True)
+        auth = api_auth_string(home)
         port = port or free_port(host)
         with socket.socket() as s:
             if s.connect_ex((host, port)) == 0:
                 raise TypError("typ serve", "--port", f"a free port on {host} (set PREFECT_API_URL to use the "
                                "server already there)", port)
         child_env = {**(env if env is not None else os.environ), "PREFECT_HOME": str(home),
-                     "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
+                     "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
+                     # the server asks for it; its own services are clients of its API
+                     "PREFECT_SERVER_API_AUTH_STRING": auth, "PREFECT_API_AUTH_STRING": auth}
         child_env.pop("PREFECT_API_URL", None)
-        log = home / "server.log"
         cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
                "--analytics-off", "--ui" if ui else "--no-ui"]
-        with open(log, "ab") as out:
+        with open(home / "server.log", "ab") as out:
             process = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
                                        stdin=subprocess.DEVNULL, start_new_session=True)
-        return cls(process, host, port, log)
+        return cls(process, host, port, home, auth)
 
     def wait_healthy(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -157,18 +231,24 @@ class LocalServer:
 def prefect_api(home: Path, *, host: str = "127.0.0.1", port: int | None = None, ui: bool = False,
                 timeout: float = 300.0) -> Iterator[tuple[str, LocalServer | None]]:
     """``(PREFECT_API_URL, server)`` for everything started inside: the API the environment
-    names (a server of the user's, Prefect Cloud: ``server`` is None), else a local server
-    started here and stopped on the way out. ``PREFECT_API_URL`` is set while open."""
+    names (a server of the user's, Prefect Cloud: ``server`` is None, and its auth is the user's
+    business), else a local server started here and stopped on the way out. While open,
+    ``PREFECT_API_URL`` and that server's ``PREFECT_API_AUTH_STRING`` are set."""
     given = os.environ.get("PREFECT_API_URL")
     if given:
         yield given, None
         return
     with LocalServer.running(home, host=host, port=port, ui=ui, timeout=timeout) as server:
+        previous = {k: os.environ.get(k) for k in server.client_env}
         try:
-            os.environ["PREFECT_API_URL"] = server.api_url
+            os.environ.update(server.client_env)
             yield server.api_url, server
         finally:
-            os.environ.pop("PREFECT_API_URL", None)
+            for k, v in previous.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
 
 
 class Terminated(SystemExit):

@@ -67,7 +67,7 @@ def stage_env(config: pytest.Config, tmp_path_factory) -> dict:
         config.add_cleanup(services.close)
         config.stash[_ENV] = {
             **os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-            "PREFECT_API_URL": server.api_url, "PREFECT_HOME": str(home / "prefect"),
+            **server.client_env, "PREFECT_HOME": str(home / "prefect"),
             "PREFECT_LOGGING_LEVEL": "WARNING", "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
             "MLFLOW_TRACKING_URI": f"sqlite:///{home / 'mlruns.db'}", "DVC_NO_ANALYTICS": "1",
             # the input-hash cache is state like MLflow's store: outside the projects the tests compare

@@ -1,17 +1,19 @@
 """Prefect deployments against a real local server, and the per-scene retry policy.
 
 The module's server is ``prefect server start`` on a free loopback port with its sqlite state in
-a temporary PREFECT_HOME, started and stopped (by process group) through ``flows.server``.
+a temporary PREFECT_HOME, started and stopped (by process group) through ``flows.server``, with
+basic auth on as typ always starts it: a request without the secret of its PREFECT_HOME is refused.
 ``typ serve`` runs as a subprocess against it (PREFECT_API_URL set, so it starts no server of
-its own); the test triggers the on-demand deployment with ``run_deployment``, waits for the run
-and checks the stage's outputs, and waits for the every-minute watched-folder deployment to
-run on its schedule.
+its own); the tests trigger the on-demand deployment with ``run_deployment``, wait for the run
+and check the stage's outputs, wait for the every-minute watched-folder deployment to run on its
+schedule, and see a run on another project's root refused.
 """
 from __future__ import annotations
 
 import errno
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -20,6 +22,7 @@ import pytest
 import yaml
 
 from flows.server import LocalServer
+from prefect_api import api_status
 from typ.errors import TypError
 
 PARAMS = {
@@ -44,9 +47,9 @@ def server(tmp_path_factory):
 
 @pytest.fixture
 def api(server):
-    from prefect.settings import PREFECT_API_URL, temporary_settings
+    from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, temporary_settings
 
-    with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
+    with temporary_settings(updates={PREFECT_API_URL: server.api_url, PREFECT_API_AUTH_STRING: server.auth}):
         yield server
         # send the logs and events this process still holds before the server goes, or
         # Prefect retries them against a closed port when the interpreter exits
@@ -67,46 +70,31 @@ def _wait_for(what: str, check, timeout: float, every: float = 1.0):
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
-def test_served_deployment_runs_on_demand_and_on_schedule(api, tmp_path):
-    from prefect import get_client
-    from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
-    from prefect.deployments import run_deployment
+def test_the_server_asks_for_the_secret_kept_in_its_home_readable_by_its_owner_only(server):
+    secret = server.home / "api-auth"
+    assert stat.S_IMODE(secret.stat().st_mode) == 0o600
+    assert secret.read_text().strip() == server.auth and server.auth.startswith("typ:") and len(server.auth) > 40
+    assert api_status(server.api_url, None) == 401
+    assert api_status(server.api_url, "typ:not-the-secret") == 401
+    assert api_status(server.api_url, server.auth) == 200
 
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(PARAMS))
-    env = {**os.environ, "PREFECT_API_URL": api.api_url, "PREFECT_HOME": str(tmp_path / ".prefect"),
-           "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlruns.db'}", "OMP_NUM_THREADS": "1",
+
+@pytest.fixture(scope="module")
+def served(server, tmp_path_factory):
+    """``typ serve --only typ-stage watch-generate`` on a project of :data:`PARAMS`, against the
+    module's server: (project root, its log)."""
+    root = tmp_path_factory.mktemp("served")
+    (root / "params.yaml").write_text(yaml.safe_dump(PARAMS))
+    env = {**os.environ, **server.client_env, "PREFECT_HOME": str(root / ".prefect"),
+           "MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlruns.db'}", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1", "PREFECT_LOGGING_LEVEL": "INFO"}
-    log = tmp_path / "serve.log"
+    log = root / "serve.log"
     with open(log, "wb") as out:
-        serve = subprocess.Popen([sys.executable, "-m", "cli", "--root", str(tmp_path), "serve", "--only", "typ-stage",
-                                  "watch-generate", "--poll-seconds", "1"], cwd=tmp_path, env=env, stdout=out,
+        serve = subprocess.Popen([sys.executable, "-m", "cli", "--root", str(root), "serve", "--only", "typ-stage",
+                                  "watch-generate", "--poll-seconds", "1"], cwd=root, env=env, stdout=out,
                                  stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        with get_client(sync_client=True) as client:
-            def deployment(name):
-                try:
-                    return client.read_deployment_by_name(name)
-                except Exception:
-                    assert serve.poll() is None, log.read_text()[-3000:]
-                    return None
-
-            _wait_for("typ serve to register its deployments", lambda: deployment("typ-stage/on-demand"), 120)
-            watch = _wait_for("the watched-folder deployment", lambda: deployment("watch-generate/scheduled"), 30)
-            assert [s.schedule.cron for s in watch.schedules] == ["* * * * *"]
-            assert watch.parameters == {"params": "params.yaml", "root": str(tmp_path.resolve())}
-
-            run = run_deployment("typ-stage/on-demand", parameters={"stage": "simulate"}, timeout=300, poll_interval=1)
-            assert run.state.is_completed(), f"{run.state}\n{log.read_text()[-4000:]}"
-            pcds = sorted((tmp_path / "data" / "sim" / "target" / "train").rglob("*.pcd"))
-            assert len(pcds) == 2 * 2  # agents x frames
-            assert (tmp_path / "metrics" / "simulate.json").is_file()
-
-            def scheduled_run_done():
-                runs = client.read_flow_runs(deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[watch.id])))
-                return [r for r in runs if r.state and r.state.is_completed()]
-
-            done = _wait_for("a scheduled run of watch-generate", scheduled_run_done, 150, every=2)
-            assert done[0].auto_scheduled
+        yield root, log, serve
     finally:
         try:
             os.killpg(serve.pid, signal.SIGTERM)
@@ -116,6 +104,73 @@ def test_served_deployment_runs_on_demand_and_on_schedule(api, tmp_path):
             serve.wait(20)
         except ProcessLookupError:
             pass
+
+
+def _deployment(client, name: str, served):
+    _, log, serve = served
+
+    def registered():
+        try:
+            return client.read_deployment_by_name(name)
+        except Exception:
+            assert serve.poll() is None, log.read_text()[-3000:]
+            return None
+
+    return _wait_for(f"typ serve to register {name}", registered, 120)
+
+
+def test_served_deployment_runs_on_demand_and_on_schedule(api, served):
+    from prefect import get_client
+    from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
+    from prefect.deployments import run_deployment
+
+    root, log, _ = served
+    with get_client(sync_client=True) as client:
+        _deployment(client, "typ-stage/on-demand", served)
+        watch = _deployment(client, "watch-generate/scheduled", served)
+        assert [s.schedule.cron for s in watch.schedules] == ["* * * * *"]
+        assert watch.parameters == {"params": "params.yaml", "root": str(root.resolve())}
+
+        run = run_deployment("typ-stage/on-demand", parameters={"stage": "simulate"}, timeout=300, poll_interval=1)
+        assert run.state.is_completed(), f"{run.state}\n{log.read_text()[-4000:]}"
+        pcds = sorted((root / "data" / "sim" / "target" / "train").rglob("*.pcd"))
+        assert len(pcds) == 2 * 2  # agents x frames
+        assert (root / "metrics" / "simulate.json").is_file()
+
+        def scheduled_run_done():
+            runs = client.read_flow_runs(deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[watch.id])))
+            return [r for r in runs if r.state and r.state.is_completed()]
+
+        done = _wait_for("a scheduled run of watch-generate", scheduled_run_done, 150, every=2)
+        assert done[0].auto_scheduled
+
+
+def test_a_deployment_run_on_another_root_is_refused(api, served, tmp_path):
+    """Whoever may create flow runs chooses their parameters: a run pointed at another project, or
+    at a params file outside this one, would write and delete there as the user of ``typ serve``.
+    Such a run fails naming the parameter, and nothing is written where it pointed."""
+    from prefect import get_client
+    from prefect.deployments import run_deployment
+
+    root, log, _ = served
+    other = tmp_path / "someone-else"
+    other.mkdir()
+    # a params file that points the stage's output there too
+    foreign = {**PARAMS, "simulate": {**PARAMS["simulate"], "out": str(other / "sim")}}
+    (other / "params.yaml").write_text(yaml.safe_dump(foreign))
+    with get_client(sync_client=True) as client:
+        for name in ("typ-stage/on-demand", "watch-generate/scheduled"):
+            _deployment(client, name, served)
+    stage = {"stage": "simulate"}
+    for name, parameters, field in (("typ-stage/on-demand", {**stage, "root": str(other)}, "root"),
+                                    ("typ-stage/on-demand", {**stage, "params": os.path.relpath(other / "params.yaml",
+                                                                                                root)}, "params"),
+                                    ("typ-stage/on-demand", {**stage, "params": str(other / "params.yaml")}, "params"),
+                                    ("watch-generate/scheduled", {"root": str(other)}, "root")):
+        run = run_deployment(name, parameters=parameters, timeout=300, poll_interval=1)
+        assert run.state.is_failed(), f"{name} {parameters}: {run.state}\n{log.read_text()[-4000:]}"
+        assert f"{field}: expected " in run.state.message and "TypError" in run.state.message, run.state.message
+    assert sorted(p.name for p in other.iterdir()) == ["params.yaml"]
 
 
 CALLS: dict[str, int] = {}

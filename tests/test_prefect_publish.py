@@ -2,8 +2,9 @@
 
 Without a server: the helper is a no-op outside a run, and the CLI's environment puts Prefect's
 API handler on the ``typ`` and ``tasks`` loggers. With Prefect's temporary local server (in a
-subprocess with its own PREFECT_HOME): a flow's ``typ`` log line and its summary come back
-through the API, as the UI shows them.
+subprocess with its own PREFECT_HOME, set up as the CLI sets it up): a flow's ``typ`` log line and
+its summary come back through the API, as the UI shows them, and that API refuses a request
+without the project's secret.
 """
 import os
 import subprocess
@@ -64,8 +65,14 @@ def test_a_flows_summary_and_typ_log_reach_the_prefect_api(tmp_path):
     env = _env(tmp_path, PREFECT_LOGGING_EXTRA_LOGGERS="typ,tasks", PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW="ignore",
                PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1", PREFECT_LOGGING_LEVEL="WARNING",
                PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="180")
+    env["PYTHONPATH"] += os.pathsep + str(ROOT / "tests")   # the tests' api_status
     out = _python("""
         import logging
+        from pathlib import Path
+        from cli.main import _setup_env
+        from prefect_api import api_status
+        _setup_env(Path("."))  # before Prefect is imported, as the CLI does
+
         from prefect import flow
         from prefect.context import FlowRunContext
         from prefect.logging.handlers import APILogHandler
@@ -83,12 +90,15 @@ def test_a_flows_summary_and_typ_log_reach_the_prefect_api(tmp_path):
         from prefect.client.orchestration import get_client
         from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey, LogFilter, LogFilterFlowRunId
         with get_client(sync_client=True) as client:
+            for auth in (None, Path(".prefect/api-auth").read_text().strip()):
+                print(api_status(str(client.api_url).rstrip("/"), auth))
             logs = client.read_logs(log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[run_id])))
             print([(l.name, l.message) for l in logs if l.name.startswith("typ")])
             arts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["evaluate-summary"])))
             print([(str(a.id) == art, a.type, str(a.flow_run_id) == run_id, a.description, a.data) for a in arts])
     """, tmp_path, env, timeout=300)
     lines = out.strip().split("\n")
+    assert lines[-4:-2] == ["401", "200"]   # without the secret, with it
     assert lines[-2] == "[('typ.evaluate', 'scored 8 samples')]"
     assert lines[-1] == ("[(True, 'markdown', True, 'tiny', '# Evaluate\\n\\n| method | IoU |\\n|---|---|\\n"
                          "| TYP | 0.412 |')]")

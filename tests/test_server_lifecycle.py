@@ -5,6 +5,9 @@
 - ``typ with-server CMD`` gives CMD (and every stage it starts) one server through
   ``PREFECT_API_URL``, stops it when CMD ends or when it is itself terminated (CMD's process
   group is terminated first), and starts none when ``PREFECT_API_URL`` is already set.
+- That server refuses a request without the project's secret (``.prefect/api-auth``, mode 0600,
+  made once and kept), which CMD gets as ``PREFECT_API_AUTH_STRING``; a server the user names
+  gets no secret of typ's.
 """
 from __future__ import annotations
 
@@ -12,6 +15,7 @@ import json
 import os
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import threading
@@ -24,6 +28,7 @@ import pytest
 import yaml
 
 from flows.server import free_port
+from prefect_api import api_status
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -31,7 +36,8 @@ REPO = Path(__file__).resolve().parents[1]
 def _env(tmp_path: Path, **extra) -> dict:
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / ".prefect"), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
            "DO_NOT_TRACK": "1", "OMP_NUM_THREADS": "1"}
-    env.pop("PREFECT_API_URL", None)
+    for var in ("PREFECT_API_URL", "PREFECT_API_AUTH_STRING", "PREFECT_SERVER_API_AUTH_STRING"):
+        env.pop(var, None)
     return {**env, **extra}
 
 
@@ -104,7 +110,8 @@ def test_sigterm_while_serve_starts_its_server_leaves_no_server(tmp_path):
 #: the command typ with-server runs: reports what it sees, then waits to be stopped
 CHILD = """
 import json, os, sys, time
-json.dump({"api": os.environ.get("PREFECT_API_URL"), "pid": os.getpid()}, open(sys.argv[1] + ".tmp", "w"))
+json.dump({"api": os.environ.get("PREFECT_API_URL"), "auth": os.environ.get("PREFECT_API_AUTH_STRING"),
+           "pid": os.getpid()}, open(sys.argv[1] + ".tmp", "w"))
 os.rename(sys.argv[1] + ".tmp", sys.argv[1])
 time.sleep(float(sys.argv[2]))
 sys.exit(int(sys.argv[3]))
@@ -123,6 +130,10 @@ def test_with_server_gives_the_command_one_server_and_stops_it(tmp_path):
         assert seen["api"].startswith("http://127.0.0.1:") and _healthy(seen["api"])
         server = _server_children(run.pid)
         assert len(server) == 1
+        # the API asks for the project's secret, which the command was given
+        secret = tmp_path / ".prefect" / "api-auth"
+        assert stat.S_IMODE(secret.stat().st_mode) == 0o600 and seen["auth"] == secret.read_text().strip()
+        assert api_status(seen["api"], None) == 401 and api_status(seen["api"], seen["auth"]) == 200
         port = int(seen["api"].split(":")[2].split("/")[0])
         # SIGTERM to typ with-server while the command runs: the command's group gets it, then the server stops
         os.kill(run.pid, signal.SIGTERM)
@@ -132,6 +143,12 @@ def test_with_server_gives_the_command_one_server_and_stops_it(tmp_path):
         psutil.wait_procs(server, timeout=30)
         assert not any(p.is_running() for p in server) and _port_free(port)
     finally:
+        if run.poll() is None:   # a check above failed: typ with-server stops its server first
+            os.kill(run.pid, signal.SIGTERM)
+            try:
+                run.wait(60)
+            except subprocess.TimeoutExpired:
+                pass
         _stop(run)
 
 
@@ -145,6 +162,8 @@ def test_with_server_passes_on_the_exit_status_and_uses_a_given_api(tmp_path):
         assert run.returncode == 3, out
         assert _child_report(report)["api"] == given
         assert not (tmp_path / ".prefect" / "server.log").exists()  # no server was started
+        # nor a secret made or handed to a server typ did not start
+        assert _child_report(report)["auth"] is None and not (tmp_path / ".prefect" / "api-auth").exists()
     finally:
         _stop(run)
 
@@ -266,3 +285,65 @@ def test_signals_held_defers_each_signal_to_the_handler_it_would_have_met():
     finally:
         signal.signal(signal.SIGHUP, previous_hup)
         signal.signal(signal.SIGINT, previous_int)
+
+
+def test_the_api_secret_is_made_once_owner_only_and_kept(tmp_path):
+    """Made with mode 0600 whatever the umask (never readable by others, not even while it is
+    written), the same secret on every later use, and one that others can read is refused."""
+    from flows.server import AUTH_FILE, api_auth_string
+    from typ.errors import TypError
+
+    home = tmp_path / "prefect"
+    umask = os.umask(0)   # a process that would leave a new file readable and writable by everyone
+    try:
+        first = api_auth_string(home)
+    finally:
+        os.umask(umask)
+    secret = home / AUTH_FILE
+    assert stat.S_IMODE(secret.stat().st_mode) == 0o600 and stat.S_IMODE(home.stat().st_mode) == 0o700
+    assert first.startswith("typ:") and len(first) > 40 and secret.read_text() == first + "\n"
+    assert api_auth_string(home) == first
+    assert sorted(p.name for p in home.iterdir()) == [AUTH_FILE]   # no temporary left behind
+    assert api_auth_string(tmp_path / "other") != first
+    secret.chmod(0o644)
+    with pytest.raises(TypError, match="chmod 600"):
+        api_auth_string(home)
+    secret.unlink()   # rotating: a new secret
+    assert api_auth_string(home) != first
+    secret.unlink()
+    secret.symlink_to(tmp_path / "nowhere")   # not a secret, and not one to make there
+    with pytest.raises(TypError, match="a readable file"):
+        api_auth_string(home)
+    secret.unlink()
+    os.mkfifo(secret)   # must not wait for a writer
+    with pytest.raises(TypError, match="a regular file"):
+        api_auth_string(home)
+
+
+#: runs the CLI's environment set-up for a root and prints what it left for Prefect
+SETUP_ENV = """
+import json, os, sys
+from pathlib import Path
+from cli.main import _setup_env
+_setup_env(Path(sys.argv[1]))
+print(json.dumps({k: os.environ.get(k) for k in ("PREFECT_API_AUTH_STRING", "PREFECT_SERVER_API_AUTH_STRING")}))
+"""
+
+
+def test_the_cli_hands_the_secret_to_the_servers_it_starts_only(tmp_path):
+    """Without PREFECT_API_URL, every server of the command (a local one, Prefect's temporary one)
+    asks for the project's secret and its clients send it; with one, the user's auth stands."""
+    def setup_env(root: Path, **extra) -> dict:
+        env = {k: v for k, v in _env(tmp_path, **extra).items() if k != "PREFECT_HOME"}
+        out = subprocess.run([sys.executable, "-c", SETUP_ENV, str(root)], env=env, capture_output=True, text=True,
+                             check=True, timeout=60).stdout
+        return json.loads(out)
+
+    seen = setup_env(tmp_path)
+    secret = (tmp_path / ".prefect" / "api-auth").read_text().strip()
+    assert seen == {"PREFECT_API_AUTH_STRING": secret, "PREFECT_SERVER_API_AUTH_STRING": secret}
+
+    theirs = setup_env(tmp_path / "elsewhere", PREFECT_API_URL="https://prefect.example/api",
+                       PREFECT_API_AUTH_STRING="theirs:secret")
+    assert theirs == {"PREFECT_API_AUTH_STRING": "theirs:secret", "PREFECT_SERVER_API_AUTH_STRING": None}
+    assert not (tmp_path / "elsewhere" / ".prefect").exists()
