@@ -87,6 +87,14 @@ def test_a_voxel_grid_is_off_the_beams():
     assert 0.02 < on_beam_fractions(centres, spec, min_range=3.0)[0.05] < 0.15
 
 
+def test_a_scan_without_road_below_is_a_named_error(world):
+    """A sweep upside down (the road 1.84 m above the sensor): no road, rather than a mount
+    height of -1.84 m (the Waymo subsamples in shared/data hold only returns above the sensor)."""
+    points = _scan(world, SENSORS["nuscenes"])[:, :3] * np.array([1.0, 1.0, -1.0], dtype=np.float32)
+    with pytest.raises(TypError, match="ground plane"):
+        fit_sensor(points)
+
+
 def test_too_few_points_is_a_named_error():
     with pytest.raises(TypError, match="scans"):
         fit_sensor(np.zeros((10, 3)))

@@ -306,9 +306,9 @@ def fit_ground(xyz: np.ndarray, rng: np.random.Generator, *, near: tuple[float, 
 
     Candidates are the lowest point of each ``cell`` m BEV cell between ``near`` m from the
     sensor (walls, cars and trees have ground below them; reflections below the road are rare
-    and off any plane); RANSAC keeps the near-horizontal plane (within 15 deg) with the most
-    candidates within ``inlier_m``, refined by least squares on every return within ``inlier_m``
-    of it.
+    and off any plane); RANSAC keeps the near-horizontal plane (within 15 deg) below the sensor
+    with the most candidates within ``inlier_m``, refined by least squares on every return
+    within ``inlier_m`` of it.
     """
     d = np.hypot(xyz[:, 0], xyz[:, 1])
     ring = xyz[(d >= near[0]) & (d <= near[1])]
@@ -329,6 +329,8 @@ def fit_ground(xyz: np.ndarray, rng: np.random.Generator, *, near: tuple[float, 
         if norm < 1e-9 or abs(n[2]) / norm < math.cos(math.radians(15.0)):
             continue
         n = n / norm * np.sign(n[2])
+        if a @ n >= 0:   # a plane at or above the sensor is not its road (a roof, a ceiling)
+            continue
         count = int(np.sum(np.abs((lowest - a) @ n) <= inlier_m))
         if count > best_count:
             best, best_count = (n, float(a @ n)), count
@@ -342,6 +344,8 @@ def fit_ground(xyz: np.ndarray, rng: np.random.Generator, *, near: tuple[float, 
         p, q, r = np.linalg.lstsq(np.c_[inliers[:, :2], np.ones(len(inliers))], inliers[:, 2], rcond=None)[0]
         scale = math.sqrt(p * p + q * q + 1.0)
         normal, offset = np.array([-p, -q, 1.0]) / scale, r / scale
+    if offset >= 0:
+        raise TypError(_WHERE, "scans", "a near-horizontal ground plane below the sensor", f"one {offset:.2f} m above it")
     return normal, float(-offset)
 
 
