@@ -73,7 +73,7 @@ NUSCENES = SensorSpec(
 # near the horizon (0.12 .. 0.20 deg apart above -2 deg, 0.6 deg at the bottom); other
 # vehicles' calibrations differ slightly. Mount height: that frame's TOP extrinsic z, 2.184 m
 # above the vehicle frame, whose origin is on the ground (its labelled car's box bottom sits
-# at z = 0.05 m, 70 m away).
+# at z = 0.05 m, 77 m away).
 WAYMO = SensorSpec(
     name="waymo", elevations_deg=(
         -17.609, -16.985, -16.381, -15.789, -15.182, -14.612, -14.082, -13.535, -12.998, -12.472, -11.941,
