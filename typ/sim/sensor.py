@@ -25,7 +25,7 @@ class SensorSpec:
 
     Ray directions are in the sensor frame (x forward, y left, z up): beam b, azimuth a ->
     ``[cos e_b cos a, cos e_b sin a, sin e_b]``; azimuths run from -180 deg in steps of
-    ``azimuth_step_deg``.
+    ``azimuth_step_deg``. Rays start at the origin, or ``beam_heights_m[b]`` above it.
     """
 
     name: str
@@ -44,7 +44,7 @@ class SensorSpec:
     azimuth_step_deg: float = 0.4
     #: each beam's origin above the sensor origin (m), in the order of ``elevations_deg``; empty:
     #: every beam starts at the origin. A Velodyne HDL-64E's two laser blocks sit 0.12 and 0.21 m
-    #: above the origin of the frame its points come in (its ``vert_offset_correction``)
+    #: above the origin of the frame its points come in (Velodyne's per-laser vertical offsets)
     beam_heights_m: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
