@@ -24,15 +24,17 @@ from typ.formats.opv2v import write_scene
 from typ.formats.waymo import iter_waymo_frames
 from typ.io import atomic_path
 from typ.scene import Scene
+from typ.sensors import resolve
 
 FORMATS = ("kitti", "nuscenes", "waymo")
-#: height of the top LiDAR above the vehicle frame's origin (Waymo's is on the ground under
-#: the rear axle; the top LiDAR of its Pacificas sits about 2.2 m up, as the target domain's)
-SENSOR_HEIGHT = {"kitti": 0.0, "nuscenes": 0.0, "waymo": 2.2}
 #: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
-#: voxel grid's z is relative to it): KITTI's Velodyne HDL-64E at 1.73 m (Geiger et al. 2013,
-#: Fig. 3), nuScenes' LIDAR_TOP at about 1.84 m (its calibrated sensor), Waymo's top LiDAR as above
-MOUNT_HEIGHT = {"kitti": 1.73, "nuscenes": 1.84, "waymo": 2.2}
+#: voxel grid's z is relative to it): its preset's, with the source (typ.sensors.presets)
+MOUNT_HEIGHT = {fmt: resolve(fmt).mount_height for fmt in FORMATS}
+#: the formats whose points come in the vehicle frame, origin on the ground under the rear axle
+#: (Waymo), not the LiDAR's
+_VEHICLE_FRAME = ("waymo",)
+#: height of the LiDAR above the frame its points come in: 0 where that is the LiDAR's own
+SENSOR_HEIGHT = {fmt: MOUNT_HEIGHT[fmt] if fmt in _VEHICLE_FRAME else 0.0 for fmt in FORMATS}
 
 
 @dataclass(frozen=True)

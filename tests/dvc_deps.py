@@ -54,7 +54,7 @@ def closure(start: str) -> set[Path]:
 
 
 #: sub-packages a stage uses whole: declared as one folder dep
-FOLDERS = ("typ/sim", "typ/formats")
+FOLDERS = ("typ/sim", "typ/formats", "typ/sensors")
 
 
 def code_deps(stage: str) -> list[str]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from dvc_deps import ROOT, closure, code_deps
+from dvc_deps import FOLDERS, ROOT, closure, code_deps
 from dvc_params import profile_params
 
 DVC = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
@@ -16,7 +16,7 @@ def test_code_deps_are_the_flows_import_closure(stage):
     deps = set(DVC[stage]["deps"])
     missing = [d for d in code_deps(stage) if d not in deps]
     assert not missing, f"dvc.yaml stage {stage} misses code deps {missing}"
-    code = {d for d in deps if d.endswith(".py") or d in ("typ/sim", "typ/formats")}
+    code = {d for d in deps if d.endswith(".py") or d in FOLDERS}
     extra = sorted(code - set(code_deps(stage)))
     assert not extra, f"dvc.yaml stage {stage} depends on code its flow never imports: {extra}"
 

@@ -51,6 +51,72 @@ class GridConfig:
 
 
 @dataclass(frozen=True)
+class ElevationRule:
+    """``n`` beam elevations from ``low`` to ``high`` degrees: ``uniform`` steps (CARLA's LiDAR) or
+    ``horizon_dense``, even steps in asinh(e / scale) that crowd the beams near 0 deg (Waymo's
+    top LiDAR, the VLP-32C)."""
+
+    n: int
+    low: float
+    high: float
+    spacing: Literal["uniform", "horizon_dense"] = "uniform"
+    scale: float = 4.0
+
+    def check(self, where: str, name: str) -> None:
+        _positive(where, f"{name}.n", self.n)
+        if not -90 < self.low < self.high < 90:
+            raise TypError(where, f"{name}.low/high", "-90 < low < high < 90 degrees", [self.low, self.high])
+        _positive(where, f"{name}.scale", self.scale)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """A ``sensor:`` block: a spinning LiDAR without a preset (``typ.sensors.SENSORS`` names the
+    presets; ``typ.sensors.resolve`` turns either into a SensorSpec). Angles in degrees, lengths
+    in metres; noise, dropout and echo detection only matter where typ casts the sensor."""
+
+    #: ascending beam elevations, or ``{n, low, high, spacing, scale}`` (:class:`ElevationRule`)
+    elevations_deg: tuple[float, ...] | ElevationRule
+    azimuth_step_deg: float
+    max_range: float
+    #: the sensor origin above the road
+    mount_height: float
+    min_range: float = 1.0
+    #: each beam's origin above the sensor origin, one per elevation (empty: all at the origin)
+    beam_heights_m: tuple[float, ...] = ()
+    range_noise_std: float = 0.02
+    dropout: float = 0.0
+    #: echo strength at which a return is kept with probability 1 - 1/e (0: every echo)
+    detection_energy: float = 0.0
+    #: "attenuation": exp(-0.004 r) as CARLA; "material": reflectivity and incidence angle
+    intensity_model: Literal["attenuation", "material"] = "material"
+    name: str = "sensor"
+
+    def check(self, where: str, name: str) -> None:
+        rule = self.elevations_deg
+        if isinstance(rule, ElevationRule):
+            rule.check(where, f"{name}.elevations_deg")
+        elif not rule or not all(-90 < e < 90 for e in rule) or any(b <= a for a, b in zip(rule, rule[1:])):
+            raise TypError(where, f"{name}.elevations_deg", "ascending beam elevations in (-90, 90) degrees", list(rule))
+        n_beams = rule.n if isinstance(rule, ElevationRule) else len(rule)
+        if self.beam_heights_m and (len(self.beam_heights_m) != n_beams or any(abs(h) >= 1 for h in self.beam_heights_m)):
+            raise TypError(where, f"{name}.beam_heights_m", f"empty or {n_beams} heights in (-1, 1) m, one per beam",
+                           list(self.beam_heights_m))
+        if not 0 < self.azimuth_step_deg <= 10:
+            raise TypError(where, f"{name}.azimuth_step_deg", "a step in (0, 10] deg", self.azimuth_step_deg)
+        if not 0 < self.mount_height < 10:
+            raise TypError(where, f"{name}.mount_height", "a sensor height in (0, 10) m", self.mount_height)
+        if not 0 <= self.min_range < self.max_range:
+            raise TypError(where, f"{name}.min_range/max_range", "0 <= min_range < max_range metres",
+                           [self.min_range, self.max_range])
+        if not 0 <= self.dropout < 1:
+            raise TypError(where, f"{name}.dropout", "a fraction in [0, 1)", self.dropout)
+        for key in ("range_noise_std", "detection_energy"):
+            if getattr(self, key) < 0:
+                raise TypError(where, f"{name}.{key}", "a number >= 0", getattr(self, key))
+
+
+@dataclass(frozen=True)
 class DomainSimulation:
     """Per-domain overrides of the simulation's ``frames`` and agent counts (unset: the defaults)."""
 

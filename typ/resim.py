@@ -149,7 +149,7 @@ def build_surface(ego_points_in_ref, *, method: str = "surfels", ego_pose_in_ref
 
 
 def cast_surface(vertices, triangles, spec: SensorSpec) -> np.ndarray:
-    """Cast every ray of ``spec`` from the origin into a triangle surface: (M, 3) float32 hits.
+    """Cast every ray of ``spec`` from its origin into a triangle surface: (M, 3) float32 hits.
 
     vertices (V, 3) and triangles (T, 3) in the sensor frame; as :func:`typ.sim.raycast.cast`
     without its noise, dropout and intensity. Triangles are hit from either side.
@@ -163,12 +163,15 @@ def cast_surface(vertices, triangles, spec: SensorSpec) -> np.ndarray:
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
-    directions = spec.ray_directions()
+    directions, origins = spec.ray_directions(), spec.ray_origins()
     rays = np.zeros((len(directions), 6), dtype=np.float32)
     rays[:, 3:] = directions
+    if origins is not None:
+        rays[:, :3] = origins
     t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     hit = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range))
-    return (directions[hit] * t[hit, None].astype(np.float64)).astype(np.float32)
+    hits = directions[hit] * t[hit, None].astype(np.float64)
+    return (hits if origins is None else origins[hit] + hits).astype(np.float32)
 
 
 def _voxel_means(xyz: np.ndarray, size: float) -> np.ndarray:

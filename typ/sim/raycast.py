@@ -86,8 +86,9 @@ def cast(town_at_frame: TownFrame, pose: np.ndarray, spec: SensorSpec, rng: np.r
         raise TypError("typ.sim.cast", "pose", "a finite (4, 4) sensor-to-world matrix", pose.shape)
     scene, static_id, vehicle_id, keep = _scene(town_at_frame, exclude_vehicle_id)
     d_sensor = spec.ray_directions()
+    o_sensor = spec.ray_origins()
     rays = np.empty((len(d_sensor), 6), dtype=np.float32)
-    rays[:, :3] = pose[:3, 3]
+    rays[:, :3] = pose[:3, 3] if o_sensor is None else pose[:3, 3] + o_sensor @ pose[:3, :3].T
     rays[:, 3:] = d_sensor @ pose[:3, :3].T
     import open3d as o3d
 
@@ -129,6 +130,6 @@ def cast(town_at_frame: TownFrame, pose: np.ndarray, spec: SensorSpec, rng: np.r
     if spec.intensity_noise > 0:
         intensity = intensity + rng.normal(0.0, spec.intensity_noise, len(t))
     points = np.empty((len(t), 4), dtype=np.float32)
-    points[:, :3] = d_sensor[idx] * t[:, None]
+    points[:, :3] = d_sensor[idx] * t[:, None] if o_sensor is None else o_sensor[idx] + d_sensor[idx] * t[:, None]
     points[:, 3] = np.clip(intensity, 0.0, 1.0)
     return points, semantics

@@ -25,7 +25,7 @@ class SensorSpec:
 
     Ray directions are in the sensor frame (x forward, y left, z up): beam b, azimuth a ->
     ``[cos e_b cos a, cos e_b sin a, sin e_b]``; azimuths run from -180 deg in steps of
-    ``azimuth_step_deg``.
+    ``azimuth_step_deg``. Rays start at the origin, or ``beam_heights_m[b]`` above it.
     """
 
     name: str
@@ -42,6 +42,10 @@ class SensorSpec:
     incidence_weight: float = 0.7       #: material model: intensity = refl * (1 - w + w*|cos|)
     intensity_noise: float = 0.0        #: std of additive intensity noise
     azimuth_step_deg: float = 0.4
+    #: each beam's origin above the sensor origin (m), in the order of ``elevations_deg``; empty:
+    #: every beam starts at the origin. A Velodyne HDL-64E's two laser blocks sit 0.12 and 0.21 m
+    #: above the origin of the frame its points come in (Velodyne's per-laser vertical offsets)
+    beam_heights_m: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         where = f"SensorSpec[{self.name}]"
@@ -64,6 +68,10 @@ class SensorSpec:
             raise TypError(where, "intensity_model", f"one of {INTENSITY_MODELS}", self.intensity_model)
         if self.azimuth_step_deg > 10.0:
             raise TypError(where, "azimuth_step_deg", "a step in (0, 10] deg", self.azimuth_step_deg)
+        h = np.asarray(self.beam_heights_m, dtype=np.float64)
+        if h.ndim != 1 or len(h) not in (0, len(e)) or not np.all(np.abs(h) < 1.0):
+            raise TypError(where, "beam_heights_m", f"empty or {len(e)} heights in (-1, 1) m, one per beam",
+                           self.beam_heights_m)
 
     @property
     def n_beams(self) -> int:
@@ -76,6 +84,15 @@ class SensorSpec:
     def ray_directions(self) -> np.ndarray:
         """(n_beams * n_azimuths, 3) float64 unit directions in the sensor frame, beam-major."""
         return _directions(tuple(self.elevations_deg), self.n_azimuths)
+
+    def ray_origins(self) -> np.ndarray | None:
+        """(n_beams * n_azimuths, 3) float64 ray origins in the sensor frame, in the order of
+        :meth:`ray_directions`; None when every beam starts at the sensor origin."""
+        if not self.beam_heights_m:
+            return None
+        origins = np.zeros((self.n_beams, self.n_azimuths, 3))
+        origins[:, :, 2] = np.asarray(self.beam_heights_m, dtype=np.float64)[:, None]
+        return origins.reshape(-1, 3)
 
 
 @lru_cache(maxsize=16)
