@@ -355,7 +355,8 @@ def _(d):
 def _(d):
     good = d / "good.pcd"
     write_pcd(good, cloud())
-    p = write(d / "a.pcd", good.read_bytes().replace(b"POINTS 64", b"POINTS 4294967295"))
+    p = write(d / "a.pcd", good.read_bytes().replace(b"WIDTH 64", b"WIDTH 4294967295")
+              .replace(b"POINTS 64", b"POINTS 4294967295"))
     good.unlink()
     return Probe(says=(str(p), "DATA", "4294967295 points", "truncated"), call=lambda: read_pcd(p))
 
@@ -363,7 +364,7 @@ def _(d):
 @case("pcd", "negative_points_count", "huge")
 def _(d):
     p = write(d / "a.pcd", pcd_text(points="-3"))
-    return Probe(says=(str(p), "POINTS", "one non-negative integer"), call=lambda: read_pcd(p))
+    return Probe(says=(str(p), "POINTS", "one integer in [0, 4294967295]"), call=lambda: read_pcd(p))
 
 
 @case("pcd", "ascii_count_mismatch", "misaligned")
@@ -653,7 +654,7 @@ def _(d):
 @case("nuscenes", "info_not_json", "wrong dtype")
 def _(d):
     b, i = nuscenes_frame(d, '{"data_list": [')
-    return Probe(says=(str(i), "file", "a readable JSON file", "JSONDecodeError"),
+    return Probe(says=(str(i), "file", "a readable mmdet3d info JSON", "JSONDecodeError"),
                  call=lambda: read_nuscenes_frame(b, i))
 
 
@@ -765,7 +766,7 @@ def _(d):
 def _(d):
     length = struct.pack("<Q", 2**62)
     p = _waymo_file(d, length + struct.pack("<I", masked_crc32c(length)) + b"\0" * 64)
-    return Probe(says=(str(p), f"{2**62} payload bytes", "truncated file"), call=lambda: read_waymo_frames(p))
+    return Probe(says=(str(p), "a record of at most 64 MiB", str(2**62)), call=lambda: read_waymo_frames(p))
 
 
 @case("waymo", "payload_not_a_frame", "wrong dtype", needs=WAYMO)
@@ -962,7 +963,7 @@ def _(d):
 @case("params", "invalid_yaml", "wrong dtype")
 def _(d):
     probe = load_params(d, "profile: tiny\nsimulate: {frames: 2\n")
-    probe.says += ("yaml", "valid YAML")
+    probe.says += ("yaml", "well-formed YAML")
     return probe
 
 
