@@ -84,12 +84,16 @@ def test_packed_float_rgb_binary_and_nan_rows(tmp_path):
     rgb = np.array([(51 << 16) | (1 << 8) | 2, 255 << 16, 0], dtype=np.uint32).view(np.float32)
     rec = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4")])
     rec["x"], rec["y"], rec["z"], rec["rgb"] = [1, 2, np.nan], [0, 0, 0], [0, 0, 0], rgb
-    path = tmp_path / "rgb.pcd"
-    path.write_bytes(HEADER.format(fields="x y z rgb", size="4 4 4 4", type="F F F F", count="1 1 1 1",
-                                   n=3, data="binary").encode() + rec.tobytes())
-    got, _ = read_pcd(path)
-    # the organised-cloud NaN row is dropped; R of the packed colour is the intensity
+    header = HEADER.format(fields="x y z rgb", size="4 4 4 4", type="F F F F", count="1 1 1 1", n=3, data="binary")
+    organised = tmp_path / "rgb.pcd"
+    organised.write_bytes(header.replace("WIDTH 3\nHEIGHT 1", "WIDTH 1\nHEIGHT 3").encode() + rec.tobytes())
+    got, _ = read_pcd(organised)
+    # the organised cloud's NaN pixel is dropped; R of the packed colour is the intensity
     np.testing.assert_allclose(got, [[1, 0, 0, 0.2], [2, 0, 0, 1.0]], atol=1e-7)
+    # an unorganised cloud has no pixels without a return: its NaN point is refused, not dropped
+    flat = tmp_path / "flat.pcd"
+    flat.write_bytes(header.encode() + rec.tobytes())
+    assert "NaN in 1 of 3 points" in str(_error(flat))
 
 
 def test_lzf_back_reference_overlap():
