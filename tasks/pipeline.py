@@ -370,7 +370,11 @@ def read_settings(path: Path, stage: str) -> dict:
             from None
     except TypError as exc:
         raise TypError(path, f"point_stats.{exc.field}", exc.expected, exc.got) from None
-    return {"components": components, "grid": Grid.from_dict(meta["grid"], where=str(path)),
+    try:
+        grid = Grid.from_dict(meta["grid"], where=str(path))
+    except TypError as exc:  # the grid's own checks name no file
+        raise TypError(path, f"grid.{exc.field}", exc.expected, exc.got) from None
+    return {"components": components, "grid": grid,
             "schedule": meta["schedule"], "train_timesteps": steps, "sampler": meta["sampler"],
             "num_inference_steps": _count(path, "num_inference_steps", meta["num_inference_steps"], steps),
             "thresholds": dict(thresholds), "point_stats": point_stats, "adapter_scale": float(scale)}
