@@ -15,6 +15,7 @@ import contextlib
 import json
 import os
 import stat
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Iterator
 
@@ -102,8 +103,8 @@ def load_yaml(path: str | os.PathLike, noun: str, *, max_bytes: int, loader: typ
     """The YAML document in ``path``, parsed by ``loader`` (a safe loader) within bounds.
 
     Before anything is built, the parser's events are counted: nesting deeper than
-    :data:`MAX_DEPTH`, or more than :data:`MAX_YAML_NODES` nodes with every alias expanded
-    (a "billion laughs"), raises TypError. Aliases themselves are allowed: PyYAML's own
+    :data:`MAX_DEPTH`, more than :data:`MAX_YAML_NODES` nodes with every alias expanded
+    (a "billion laughs"), or a key repeated in one mapping, raises TypError. Aliases themselves are allowed: PyYAML's own
     ``safe_dump`` writes one wherever a list appears twice in what it dumps. Malformed YAML,
     and scalars the loader cannot build (an integer of 5,000 digits, a date of month 13),
     raise TypError with the position, field ``yaml`` (the file's own problems: ``field``).
@@ -123,15 +124,26 @@ def load_yaml(path: str | os.PathLike, noun: str, *, max_bytes: int, loader: typ
 
 
 def _check_yaml_events(path, noun: str, field: str, events) -> None:
-    """Refuse nesting deeper than MAX_DEPTH and more than MAX_YAML_NODES nodes once aliases are expanded.
+    """Refuse nesting deeper than MAX_DEPTH, more than MAX_YAML_NODES nodes once aliases are
+    expanded, and a mapping that repeats a key (PyYAML keeps the last one silently: a vehicle
+    whose id was mistyped as another's would vanish).
 
     The parser (libyaml's or PyYAML's) produces events without recursion; only the composer
     that builds the document recurses, and it runs after this check.
     """
     nodes = 0
-    starts: list[tuple[str | None, int]] = []  # per open collection: its anchor, the node count before it
-    sizes: dict[str, int] = {}                  # anchor -> expanded node count of the node it names
+    open_: list[_Collection] = []
+    sizes: dict[str, int] = {}  # anchor -> expanded node count of the node it names
     for event in events:
+        at = f"line {event.start_mark.line + 1}"
+        if isinstance(event, yaml.NodeEvent) and open_ and open_[-1].keys is not None:
+            parent = open_[-1]
+            if parent.expect_key and isinstance(event, yaml.ScalarEvent):
+                if event.value in parent.keys:
+                    raise TypError(path, field, f"a {noun} whose mappings name each key once",
+                                   f"key {event.value[:40]!r} again at {at}")
+                parent.keys.add(event.value)
+            parent.expect_key = not parent.expect_key
         if isinstance(event, yaml.AliasEvent):
             nodes += sizes.get(event.anchor, 1)
         elif isinstance(event, yaml.ScalarEvent):
@@ -139,18 +151,28 @@ def _check_yaml_events(path, noun: str, field: str, events) -> None:
             if event.anchor is not None:
                 sizes[event.anchor] = 1
         elif isinstance(event, yaml.CollectionStartEvent):
-            starts.append((event.anchor, nodes))
+            open_.append(_Collection(event.anchor, nodes, set() if isinstance(event, yaml.MappingStartEvent) else None))
             nodes += 1
-            if len(starts) > MAX_DEPTH:
-                raise TypError(path, field, f"a {noun} nested at most {MAX_DEPTH} levels deep",
-                               f"deeper at line {event.start_mark.line + 1}")
+            if len(open_) > MAX_DEPTH:
+                raise TypError(path, field, f"a {noun} nested at most {MAX_DEPTH} levels deep", f"deeper at {at}")
         elif isinstance(event, yaml.CollectionEndEvent):
-            anchor, before = starts.pop()
-            if anchor is not None:
-                sizes[anchor] = nodes - before
+            done = open_.pop()
+            if done.anchor is not None:
+                sizes[done.anchor] = nodes - done.before
         if nodes > MAX_YAML_NODES:
             raise TypError(path, field, f"a {noun} of at most {MAX_YAML_NODES} YAML nodes, aliases expanded",
-                           f"more by line {event.start_mark.line + 1}")
+                           f"more by {at}")
+
+
+@dataclass
+class _Collection:
+    """A YAML sequence or mapping being parsed: its anchor, the node count before it, and for a
+    mapping the scalar keys seen so far and whether the next node is a key."""
+
+    anchor: str | None
+    before: int
+    keys: set[str] | None
+    expect_key: bool = True
 
 
 def load_json(path: str | os.PathLike, noun: str, *, max_bytes: int, field: str = "file",
