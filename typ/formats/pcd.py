@@ -17,8 +17,8 @@ dropped: PCL writes NaN for the pixels without a return. An unorganised cloud ha
 pixels, so a NaN there is refused, as is an infinite coordinate or one beyond
 :data:`~typ.formats.binfile.MAX_ABS_COORDINATE` (millimetres or a world frame), in any cloud.
 
-What the header promises is checked against the data, as PCL does: ``POINTS`` equals
-``WIDTH x HEIGHT``, binary data holds exactly ``POINTS`` rows, compressed data inflates to
+What the header promises is checked against the data, as PCL does: ``WIDTH``, ``HEIGHT`` and
+``POINTS`` are all there and ``POINTS`` equals ``WIDTH x HEIGHT``, binary data holds exactly ``POINTS`` rows, compressed data inflates to
 exactly that, ascii data has one number per field and point, and every ascii number fits its
 field's type (a float beyond float32's range in a ``F 4`` field, 300 in a ``U 1`` field).
 So a file that reads returns ``POINTS`` points (fewer only by an organised cloud's NaN pixels).
@@ -141,19 +141,14 @@ def _parse_header(p: Path, head: bytes) -> _Header:
     """The header entries up to and including DATA, checked against each other."""
     entries, offset = _split_header(p, head)
     fields = _parse_fields(p, entries)
-    points, width, height = (_uint_entry(p, entries, key) if key in entries else None
-                             for key in ("POINTS", "WIDTH", "HEIGHT"))
-    if points is None and (width is None or height is None):
-        raise TypError(p, "POINTS", "a POINTS line, or WIDTH and HEIGHT", "neither")
-    if width is not None and height is not None:
-        if points is not None and points != width * height:
-            raise TypError(p, "POINTS", f"WIDTH x HEIGHT = {width} x {height} = {width * height} (as PCL requires)",
-                           points)
-        points = width * height
+    points, width, height = (_uint_entry(p, entries, key) for key in ("POINTS", "WIDTH", "HEIGHT"))
+    if points != width * height:
+        raise TypError(p, "POINTS", f"WIDTH x HEIGHT = {width} x {height} = {width * height} (as PCL requires)",
+                       points)
     kind = entries["DATA"][0].lower() if entries["DATA"] else ""
     if kind not in _DATA_KINDS:
         raise TypError(p, "DATA", f"one of {_DATA_KINDS}", entries["DATA"])
-    return _Header(fields, points, organised=height is not None and height > 1, kind=kind, offset=offset)
+    return _Header(fields, points, organised=height > 1, kind=kind, offset=offset)
 
 
 def _split_header(p: Path, head: bytes) -> tuple[dict[str, list[str]], int]:
