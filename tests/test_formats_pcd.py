@@ -103,6 +103,55 @@ def test_lzf_back_reference_overlap():
         lzf_decompress(bytes([(4 << 5) | 0, 9]), 8, where="x.pcd")
 
 
+def _samples(rng: np.random.Generator) -> list[bytes]:
+    """Byte strings that exercise every LZF token: random (literal runs), zero runs (overlapping
+    references at distance 1), short periods, repeats further apart than 8 KiB, and a float cloud."""
+    cloud = np.round(rng.uniform(-40, 40, (3000, 4)), 1).astype(np.float32).tobytes()
+    period = bytes(rng.integers(0, 256, 5, dtype=np.uint8)) * 4000
+    far = bytes(rng.integers(0, 256, 9000, dtype=np.uint8))
+    return [b"", b"a", b"abc", bytes(rng.integers(0, 256, 5000, dtype=np.uint8)), bytes(70_000), period,
+            far + far + far[:100], cloud]
+
+
+def test_lzf_round_trips_an_independent_compressor():
+    from lzf_reference import lzf_compress
+
+    rng = np.random.default_rng(3)
+    for data in _samples(rng):
+        packed = lzf_compress(data)
+        assert lzf_decompress(packed, len(data)) == data
+    assert len(lzf_compress(bytes(70_000))) < 1000  # the zero run really is coded as back references
+
+
+def test_lzf_output_is_bounded_by_the_size_it_must_have():
+    from lzf_reference import lzf_compress
+
+    packed = lzf_compress(bytes(10_000))
+    for size in (0, 9_999):  # a stream that would write more than promised stops at the bound
+        with pytest.raises(TypError, match="valid LZF-compressed data"):
+            lzf_decompress(packed, size, where="x.pcd")
+    with pytest.raises(TypError, match="10001 bytes after LZF decompression"):
+        lzf_decompress(packed, 10_001, where="x.pcd")
+    with pytest.raises(TypError, match="corrupt stream at byte"):
+        lzf_decompress(packed[:-1], 10_000, where="x.pcd")  # a back reference cut short
+
+
+def test_binary_compressed_file_round_trips(tmp_path):
+    from lzf_reference import lzf_compress
+
+    pts, sem = _cloud(300, seed=4)
+    rec = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": pts[:, 3], "semantic": sem}
+    raw = b"".join(np.ascontiguousarray(v).tobytes() for v in rec.values())  # field by field, as PCL lays it out
+    packed = lzf_compress(raw)
+    path = tmp_path / "c.pcd"
+    path.write_bytes(HEADER.format(fields="x y z intensity semantic", size="4 4 4 4 1", type="F F F F U",
+                                   count="1 1 1 1 1", n=300, data="binary_compressed").encode()
+                     + np.array([len(packed), len(raw)], "<u4").tobytes() + packed)
+    got, got_sem = read_pcd(path)
+    np.testing.assert_array_equal(got, pts)
+    np.testing.assert_array_equal(got_sem, sem)
+
+
 def _error(path) -> TypError:
     with pytest.raises(TypError) as info:
         read_pcd(path)
