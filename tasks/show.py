@@ -108,6 +108,7 @@ def show(path: Path, out: Path, opts: ShowOptions, timestamp: str | None = None)
 
 def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) -> list[Path]:
     scene = read_scene(folder, timestamp)
+    generated, references = generated_agents(folder)  # a bad manifest stops the scenario before any PNG
     prefix = f"{folder.name}_{timestamp}"
     sim_folder = simulated_counterpart(folder, opts)
     job = scenario_job(sim_folder) if sim_folder is not None else None
@@ -127,7 +128,6 @@ def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) ->
         else opts.grid.z_range
     written.append(viz.save_png(viz.panels_figure(panels, title=title, colorbar_z=colorbar),
                                 out / f"{prefix}_agents.png"))
-    generated, references = generated_agents(folder)
     for agent_id in generated:
         if agent_id not in scene.agents:
             continue

@@ -1612,6 +1612,13 @@ def _(d):
                  call=_show(y.parent.parent, d / "out"), watch=y.parent.parent)
 
 
+@case("show", "yaml_billion_laughs", "bomb")
+def _(d):
+    y = opv2v_scenario(d, billion_laughs())
+    return Probe(says=(str(y), "YAML nodes, aliases expanded"), call=_show(y.parent.parent, d / "out"),
+                 watch=y.parent.parent)
+
+
 @case("show", "generated_agents_not_a_list", "wrong dtype")
 def _(d):
     from tasks.generate import MANIFEST
@@ -1619,7 +1626,7 @@ def _(d):
     y = opv2v_scenario(d)
     manifest = write(y.parent.parent / MANIFEST, json.dumps({"generated_agents": 5}))  # TypeError before
     return Probe(says=(str(manifest), "generated_agents", "a list of agent folder names"),
-                 call=_show(y.parent.parent, d / "out"), watch=y.parent.parent)
+                 call=_show(y.parent.parent, d / "out"))
 
 
 @case("show", "manifest_is_a_fifo", "not a regular file")
