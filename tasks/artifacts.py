@@ -85,7 +85,8 @@ def read_weights_header(folder: Path, stage: str) -> dict[str, tuple[str, tuple[
         length = int.from_bytes(f.read(8), "little") if size >= 8 else -1
         if not 0 < length <= min(size - 8, MAX_HEADER_BYTES):
             raise TypError(path, "file", f"a complete {noun}: an 8-byte header length of at most "
-                           f"{min(size - 8, MAX_HEADER_BYTES)} bytes", length if length >= 0 else f"{size} bytes in all")
+                           f"{min(size - 8, MAX_HEADER_BYTES)} bytes",
+                           length if length >= 0 else f"{size} bytes in all")
         try:
             header = json.loads(f.read(length))
         except (ValueError, RecursionError) as exc:  # not UTF-8, not JSON, 5,000-digit numbers

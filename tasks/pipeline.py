@@ -103,7 +103,8 @@ class PointStats:
         numbers_only = [d["band_edges"], *d["points_per_voxel"], *d["intensity"]]
         if not all(_is_number(v) for row in numbers_only for v in row):
             raise TypError("point_stats", "values", "numbers", d)
-        return cls(tuple(float(v) for v in d["band_edges"]), tuple(tuple(float(v) for v in p) for p in d["points_per_voxel"]),
+        return cls(tuple(float(v) for v in d["band_edges"]),
+                   tuple(tuple(float(v) for v in p) for p in d["points_per_voxel"]),
                    tuple(tuple(float(v) for v in q) for q in d["intensity"]))
 
     @classmethod
@@ -356,8 +357,9 @@ def read_settings(path: Path, stage: str) -> dict:
                        f"{sorted(SCHEDULERS)}", [meta["schedule"], meta["sampler"]])
     steps = _count(path, "train_timesteps", meta["train_timesteps"], MAX_TIMESTEPS)
     thresholds = meta["thresholds"]
-    if not isinstance(thresholds, dict) or not all(_is_number(thresholds.get(k)) for k in ("low", "high", "noise_std")) \
-            or not 0 <= thresholds["low"] <= thresholds["high"] <= 1 or not 0 <= thresholds["noise_std"] <= MAX_NOISE_STD:
+    if not isinstance(thresholds, dict) or \
+            not all(_is_number(thresholds.get(k)) for k in ("low", "high", "noise_std")) or \
+            not 0 <= thresholds["low"] <= thresholds["high"] <= 1 or not 0 <= thresholds["noise_std"] <= MAX_NOISE_STD:
         raise TypError(path, "thresholds", f"low, high, noise_std with 0 <= low <= high <= 1 and noise_std in "
                        f"[0, {MAX_NOISE_STD:g}]", thresholds)
     scale = meta.get("adapter_scale", 1.0)

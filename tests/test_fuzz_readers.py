@@ -282,7 +282,8 @@ def safetensors_bytes() -> bytes:
     torch.manual_seed(0)
     module = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.LayerNorm(4))
     # metadata: header bytes whose change leaves the tensors as they are (mutations a reader may accept)
-    return save({k: v.contiguous() for k, v in module.state_dict().items()}, metadata={"format": "pt", "note": "typ fuzz " * 30})
+    return save({k: v.contiguous() for k, v in module.state_dict().items()},
+                metadata={"format": "pt", "note": "typ fuzz " * 30})
 
 
 def _module(config: dict):

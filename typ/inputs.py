@@ -104,8 +104,9 @@ def load_yaml(path: str | os.PathLike, noun: str, *, max_bytes: int, loader: typ
 
     Before anything is built, the parser's events are counted: nesting deeper than
     :data:`MAX_DEPTH`, more than :data:`MAX_YAML_NODES` nodes with every alias expanded
-    (a "billion laughs"), or a key repeated in one mapping, raises TypError. Aliases themselves are allowed: PyYAML's own
-    ``safe_dump`` writes one wherever a list appears twice in what it dumps. Malformed YAML,
+    (a "billion laughs"), or a key repeated in one mapping, raises TypError. Aliases
+    themselves are allowed: PyYAML's own ``safe_dump`` writes one wherever a list appears
+    twice in what it dumps. Malformed YAML,
     and scalars the loader cannot build (an integer of 5,000 digits, a date of month 13),
     raise TypError with the position, field ``yaml`` (the file's own problems: ``field``).
     """
@@ -228,6 +229,6 @@ def finite_numbers(where, field: str, value, length: int) -> np.ndarray:
 def finite_matrix(where, field: str, value, rows: int, cols: int) -> np.ndarray:
     """``value`` as a ``(rows, cols)`` float64 matrix of finite numbers (a list of row lists)."""
     if not isinstance(value, (list, tuple)) or len(value) != rows:
-        raise TypError(where, field, f"a finite {rows}x{cols} matrix (a list of {rows} rows)",
-                       value if value is None or isinstance(value, (list, tuple)) else type(value).__name__)
+        got = "missing" if value is None else value if isinstance(value, (list, tuple)) else type(value).__name__
+        raise TypError(where, field, f"a finite {rows}x{cols} matrix (a list of {rows} rows)", got)
     return np.stack([finite_numbers(where, f"{field}[{r}]", row, cols) for r, row in enumerate(value)])

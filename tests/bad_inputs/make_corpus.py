@@ -1416,11 +1416,10 @@ def _(d):
     return Probe(says=(str(p), "a .pcd file of at most 128 MiB", str(4 << 30)), call=lambda: read_pcd(p))
 
 
-def _binary_pcd(d: Path, n: int, width: int, points: int, height: int = 1) -> Path:
-    """A binary x y z intensity cloud of ``n`` rows under a header claiming WIDTH/HEIGHT/POINTS."""
-    text = pcd_text(points=points, data="binary", body="").replace(f"WIDTH {points}".encode(), f"WIDTH {width}".encode())
-    text = text.replace(b"HEIGHT 1", f"HEIGHT {height}".encode())
-    return write(d / "a.pcd", text + cloud(n).tobytes())
+def _binary_pcd(d: Path, n: int, width: int, points: int) -> Path:
+    """A binary x y z intensity cloud of ``n`` rows under a header claiming WIDTH (HEIGHT 1) and POINTS."""
+    header = pcd_text(points=points, data="binary", body="")
+    return write(d / "a.pcd", header.replace(f"WIDTH {points}".encode(), f"WIDTH {width}".encode()) + cloud(n).tobytes())
 
 
 @case("pcd", "points_fewer_than_width", "misaligned")
@@ -1552,7 +1551,8 @@ def _(d):
 @case("nuscenes", "info_100k_brackets", "deep")
 def _(d):
     b, i = nuscenes_frame(d, '{"data_list": ' + "[" * 100_000)  # json: RecursionError before
-    return Probe(says=(str(i), "a readable mmdet3d info JSON", "RecursionError"), call=lambda: read_nuscenes_frame(b, i))
+    return Probe(says=(str(i), "a readable mmdet3d info JSON", "RecursionError"),
+                 call=lambda: read_nuscenes_frame(b, i))
 
 
 @case("waymo", "dev_urandom", "not a regular file", needs=WAYMO)
@@ -1576,7 +1576,8 @@ def zlib_zeros(n_chunks: int, chunk: int = 16 << 20) -> bytes:
 def _(d):
     bomb = zlib_zeros(96)  # 1.5 MB that inflates to 1.5 GiB
     p = _waymo_file(d, tfrecord(waymo_frame(compressed=bomb).SerializeToString()))
-    return Probe(says=(str(p), "ri_return1", "a range image of at most", "zlib bomb"), call=lambda: read_waymo_frames(p))
+    return Probe(says=(str(p), "ri_return1", "a range image of at most", "zlib bomb"),
+                 call=lambda: read_waymo_frames(p))
 
 
 @case("waymo", "range_image_shape_wraps_to_0", "overflow", needs=WAYMO)

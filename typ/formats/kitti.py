@@ -126,7 +126,8 @@ def read_velodyne(path: str | os.PathLike) -> np.ndarray:
     if outside.any():
         raise TypError(path, "reflectance", "values in [0, 1] in the fourth column (KITTI's float32 x4 layout); "
                        "a nuScenes (x5) or Waymo (x6) file reads out of phase here",
-                       f"{int(outside.sum())} of {len(points)} points outside, such as {float(points[outside, 3][0]):g}")
+                       f"{int(outside.sum())} of {len(points)} points outside, "
+                       f"such as {float(points[outside, 3][0]):g}")
     return points
 
 

@@ -18,14 +18,14 @@ pixels, so a NaN there is refused, as is an infinite coordinate or one beyond
 :data:`~typ.formats.binfile.MAX_ABS_COORDINATE` (millimetres or a world frame), in any cloud.
 
 What the header promises is checked against the data, as PCL does: ``WIDTH``, ``HEIGHT`` and
-``POINTS`` are all there and ``POINTS`` equals ``WIDTH x HEIGHT``, binary data holds exactly ``POINTS`` rows, compressed data inflates to
-exactly that, ascii data has one number per field and point, and every ascii number fits its
-field's type (a float beyond float32's range in a ``F 4`` field, 300 in a ``U 1`` field).
-So a file that reads returns ``POINTS`` points (fewer only by an organised cloud's NaN pixels).
-Bounds before any allocation: the file and its inflated data are at most
-:data:`MAX_PCD_BYTES`, ascii data at most :data:`MAX_ASCII_BYTES`, a field's ``COUNT`` at
-most :data:`MAX_COUNT`. LZF is decoded by compiled code (numba): reports/bench_pcd_lzf.md
-compares it with the pure-Python decoder it replaced.
+``POINTS`` are all there and ``POINTS`` equals ``WIDTH x HEIGHT``, binary data holds exactly
+``POINTS`` rows, compressed data inflates to exactly that, ascii data has one number per field
+and point, and every ascii number fits its field's type (a float beyond float32's range in a
+``F 4`` field, 300 in a ``U 1`` field). So a file that reads returns ``POINTS`` points (fewer
+only by an organised cloud's NaN pixels). Bounds before any allocation: the file and its
+inflated data are at most :data:`MAX_PCD_BYTES`, ascii data at most :data:`MAX_ASCII_BYTES`, a
+field's ``COUNT`` at most :data:`MAX_COUNT`. LZF is decoded by compiled code (numba):
+reports/bench_pcd_lzf.md compares it with the pure-Python decoder it replaced.
 """
 from __future__ import annotations
 
