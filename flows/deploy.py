@@ -22,7 +22,7 @@ from prefect import flow
 from prefect.types.entrypoint import EntrypointType
 
 from flows.pipeline import SERVED_ROOT_ENV, pipeline_flow, run_stage, served_project_only
-from typ.config import load_config
+from typ.config import load_config, read_params
 from typ.formats.opv2v import list_scenarios
 from typ.io import write_text
 
@@ -55,7 +55,7 @@ def new_scenarios(watch: Path, out: Path) -> dict[tuple[str, str], list[Path]]:
 def watch_params(params_file: Path, watch: Path, out: Path, sets: list[tuple[str, str]]) -> str:
     """The project's params with ``generate`` pointed at the watched folder, written beside the
     outputs (``<out>/.params.yaml``) so that what a run did can be read back."""
-    raw = yaml.safe_load(params_file.read_text()) or {}
+    raw = read_params(params_file)
     raw["generate"] = {**(raw.get("generate") or {}), "input": str(watch), "out": str(out),
                        "sets": [{"dataset": d, "split": s, "references": "vehicles"} for d, s in sets]}
     path = out / DERIVED_PARAMS

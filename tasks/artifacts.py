@@ -7,10 +7,19 @@ written to temporary names and renamed into place, the weights first, so a folde
 wrong — a missing file, a truncated or corrupt safetensors file, JSON that does not parse, a
 state dict whose names or shapes do not fit the config — and raises :class:`TypError`
 naming the file, what was expected, and the stage that makes it.
+
+Neither file is trusted before it is checked. ``config.json`` is at most :data:`MAX_CONFIG_BYTES`;
+the safetensors header (an 8-byte length, then JSON naming each tensor's dtype, shape and byte
+range) is read and checked against the file's size before any tensor is, and the file is at most
+:data:`MAX_WEIGHTS_BYTES`. The module a config describes is first built on torch's ``meta``
+device, which allocates nothing: a config of huge sizes, or of zero sizes that make the
+constructor divide by zero, is refused there, and so is one whose tensors are not the header's,
+before the module is built for real.
 """
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
@@ -18,10 +27,20 @@ import torch
 from torch import nn
 
 from typ.errors import TypError
+from typ.inputs import MiB, load_json, open_regular, read_regular
 from typ.io import write_bytes, write_json
 
 CONFIG = "config.json"
 WEIGHTS = "model.safetensors"
+#: a config.json holds a model's sizes and a training curve: kilobytes
+MAX_CONFIG_BYTES = 16 * MiB
+#: the paper-scale generator's largest part (its UNet, 8.4 M parameters) is about 34 MB
+MAX_WEIGHTS_BYTES = 1024 * MiB
+#: safetensors' header: a few hundred bytes per tensor
+MAX_HEADER_BYTES = 16 * MiB
+#: bytes per element of the safetensors dtypes a torch state dict can hold
+_DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1,
+                "BOOL": 1, "U16": 2, "U32": 4, "U64": 8, "C64": 8}
 
 M = TypeVar("M", bound=nn.Module)
 
@@ -38,10 +57,7 @@ def save_module(folder: Path, module: nn.Module, config: dict, **extra: Any) -> 
 
 
 def _parse(path: Path, stage: str):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise TypError(path, "file", f"the JSON config the {stage} stage writes", f"{type(exc).__name__}: {exc}") from None
+    return load_json(path, f"JSON config the {stage} stage writes", max_bytes=MAX_CONFIG_BYTES)
 
 
 def read_config(folder: Path, stage: str) -> dict:
@@ -56,34 +72,92 @@ def read_config(folder: Path, stage: str) -> dict:
     return data
 
 
+def read_weights_header(folder: Path, stage: str) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """``{tensor name: (dtype, shape)}`` from ``model.safetensors``'s header, read without its tensors.
+
+    The header must be JSON of at most the file's size; every tensor's byte range must hold
+    exactly ``prod(shape) x dtype size`` bytes, and the ranges must tile the data that follows
+    the header, to its last byte (as safetensors itself requires)."""
+    path = Path(folder) / WEIGHTS
+    noun = f"safetensors file written by the {stage} stage"
+    with open_regular(path, noun, max_bytes=MAX_WEIGHTS_BYTES,
+                      missing=f"trained weights (run the {stage} stage: dvc repro)") as (f, size):
+        length = int.from_bytes(f.read(8), "little") if size >= 8 else -1
+        if not 0 < length <= min(size - 8, MAX_HEADER_BYTES):
+            raise TypError(path, "file", f"a complete {noun}: an 8-byte header length of at most "
+                           f"{min(size - 8, MAX_HEADER_BYTES)} bytes",
+                           length if length >= 0 else f"{size} bytes in all")
+        try:
+            header = json.loads(f.read(length))
+        except (ValueError, RecursionError) as exc:  # not UTF-8, not JSON, 5,000-digit numbers
+            raise TypError(path, "header", f"the JSON header of a {noun}", f"{type(exc).__name__}: {exc}") from None
+    if not isinstance(header, dict):
+        raise TypError(path, "header", f"a JSON mapping of tensors ({noun})", type(header).__name__)
+    tensors, ranges = {}, []
+    for name, entry in header.items():
+        if name == "__metadata__":
+            continue
+        dtype, shape, offsets = (entry.get(k) for k in ("dtype", "shape", "data_offsets")) \
+            if isinstance(entry, dict) else (None, None, None)
+        if dtype not in _DTYPE_BYTES or not _ints(shape, 0) or not _ints(offsets, 2) or offsets[0] > offsets[1] or \
+                offsets[1] - offsets[0] != math.prod(shape) * _DTYPE_BYTES[dtype]:
+            raise TypError(path, f"header.{name}", f"dtype in {sorted(_DTYPE_BYTES)}, a shape of integers >= 0 and "
+                           "data_offsets [begin, end] spanning prod(shape) x dtype size bytes", entry)
+        tensors[name] = (dtype, tuple(shape))
+        ranges.append(tuple(offsets))
+    end = 0
+    for begin, stop in sorted(ranges):
+        if begin != end:
+            raise TypError(path, "header", "tensor byte ranges that follow one another without gap or overlap",
+                           f"a range starts at {begin}, the previous ends at {end}")
+        end = stop
+    if end != size - 8 - length:
+        raise TypError(path, "file", f"a complete {noun}: {8 + length + end} bytes as its header says",
+                       f"{size} bytes")
+    return tensors
+
+
+def _ints(value, length: int) -> bool:
+    """A list of non-negative integers (of ``length`` items unless 0)."""
+    return isinstance(value, list) and (not length or len(value) == length) and \
+        all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value)
+
+
 def read_weights(folder: Path, stage: str) -> dict[str, torch.Tensor]:
-    """The state dict in ``model.safetensors``; missing, truncated or corrupt raises naming ``stage``."""
+    """The state dict in ``model.safetensors``; missing, truncated or corrupt raises naming ``stage``.
+
+    The header is checked (:func:`read_weights_header`) before the tensors are read."""
     from safetensors import SafetensorError
     from safetensors.torch import load
 
+    read_weights_header(folder, stage)
     path = Path(folder) / WEIGHTS
-    if not path.is_file():
-        raise TypError(path, "file", f"trained weights (run the {stage} stage: dvc repro)", "missing")
     try:
-        return load(path.read_bytes())
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        return load(read_regular(path, f"safetensors file written by the {stage} stage", max_bytes=MAX_WEIGHTS_BYTES))
+    except (SafetensorError, ValueError, RuntimeError) as exc:
         raise TypError(path, "file", f"a complete safetensors file written by the {stage} stage",
                        f"{type(exc).__name__}: {exc}") from None
 
 
-def load_into(module: M, state: dict[str, torch.Tensor], path: Path, stage: str) -> M:
-    """``module.load_state_dict(state)`` with a named error for missing, unexpected or misshapen tensors."""
+def check_against_header(module: nn.Module, header: dict[str, tuple[str, tuple[int, ...]]], path: Path,
+                         stage: str) -> None:
+    """The module's tensors are the header's: the same names, each of the same shape."""
     own = module.state_dict()
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
+    missing = sorted(set(own) - set(header))
+    unexpected = sorted(set(header) - set(own))
     if missing or unexpected:
         raise TypError(path, "weights", f"the tensors of the configured model (from the {stage} stage)",
                        f"missing {missing[:3]}{'…' if len(missing) > 3 else ''}, "
                        f"unexpected {unexpected[:3]}{'…' if len(unexpected) > 3 else ''}")
-    for k, v in state.items():
-        if own[k].shape != v.shape:
+    for k, (_, shape) in header.items():
+        if tuple(own[k].shape) != shape:
             raise TypError(path, f"weights.{k}", f"shape {tuple(own[k].shape)} (from the {stage} stage's config)",
-                           tuple(v.shape))
+                           shape)
+
+
+def load_into(module: M, state: dict[str, torch.Tensor], path: Path, stage: str) -> M:
+    """``module.load_state_dict(state)`` with a named error for missing, unexpected or misshapen tensors."""
+    check_against_header(module, {k: (str(v.dtype), tuple(v.shape)) for k, v in state.items()}, path, stage)
     module.load_state_dict(state)
     return module
 
@@ -92,17 +166,28 @@ def load_module(folder: Path, build: Callable[[dict], M], stage: str) -> tuple[M
     """Rebuild a module saved by :func:`save_module`: ``build(config)`` then its weights.
 
     Returns (module in eval mode, the whole config.json). A config ``build`` rejects (a
-    missing key, a bad value) raises naming the file too.
+    missing key, a bad value, a size of zero), or one whose tensors are not those in the
+    weights' header (a huge size), raises naming the file too, before anything is allocated.
     """
     folder = Path(folder)
     meta = read_config(folder, stage)
-    try:
-        module = build(meta["config"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise TypError(folder / CONFIG, "config", f"a model config the {stage} stage writes",
-                       f"{type(exc).__name__}: {exc}") from None
+    header = read_weights_header(folder, stage)
+    with torch.device("meta"):  # builds the module's structure, allocates none of its tensors
+        skeleton = _build(folder, build, meta["config"], stage)
+    check_against_header(skeleton, header, folder / WEIGHTS, stage)
+    module = _build(folder, build, meta["config"], stage)
     load_into(module, read_weights(folder, stage), folder / WEIGHTS, stage)
     return module.eval(), meta
+
+
+def _build(folder: Path, build: Callable[[dict], M], config: dict, stage: str) -> M:
+    try:
+        return build(config)
+    except TypError:
+        raise
+    except Exception as exc:  # the config is input: whatever its values make a constructor raise, name the file
+        raise TypError(folder / CONFIG, "config", f"a model config the {stage} stage writes",
+                       f"{type(exc).__name__}: {exc}") from None
 
 
 def load_if_key(folder: Path, build: Callable[[dict], M], stage: str, key: str) -> tuple[M, dict] | None:

@@ -27,6 +27,8 @@ Batched work (:meth:`occupancy`) takes dense grids; ``__call__`` takes one ego c
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,8 +38,8 @@ import torch
 from models.adapter import ZeroAdapter
 from models.ldm import LatentDiffusion
 from models.postprocess import postprocess
-from models.samplers import make_scheduler, sample
-from models.schedules import betas
+from models.samplers import SCHEDULERS, make_scheduler, sample
+from models.schedules import SCHEDULES, betas
 from tasks.artifacts import load_module, save_module
 from tasks.vqvae import build_from_config as build_encoder
 from typ import distributed
@@ -47,6 +49,16 @@ from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
 PIPELINE_JSON = "pipeline.json"
 COMPONENTS = ("x_vqvae", "box_encoder", "unet", "adapter")
+#: the parts a generator cannot do without (the adapter is absent for stage 1 alone)
+REQUIRED = ("x_vqvae", "box_encoder", "unet")
+#: diffusion steps a generator trains or samples with (the paper's T: 1000)
+MAX_TIMESTEPS = 10_000
+#: adapter_scale beyond this drowns the UNet (reports/generation_ablation.md tries a few units)
+MAX_ADAPTER_SCALE = 1000.0
+#: logit noise of the post-processing (params: stage1.postprocess.noise_std, about 1)
+MAX_NOISE_STD = 100.0
+#: range bands of a PointStats (point_statistics writes 5)
+MAX_BANDS = 64
 
 
 @dataclass(frozen=True)
@@ -68,10 +80,32 @@ class PointStats:
         return {"band_edges": list(self.band_edges), "points_per_voxel": [list(p) for p in self.points_per_voxel],
                 "intensity": [list(q) for q in self.intensity]}
 
+    def __post_init__(self) -> None:
+        edges = np.asarray(self.band_edges, dtype=np.float64)
+        if not 2 <= len(edges) <= MAX_BANDS + 1 or not np.isfinite(edges).all() or (np.diff(edges) <= 0).any():
+            raise TypError("point_stats", "band_edges", f"2 to {MAX_BANDS + 1} finite ascending distances",
+                           self.band_edges)
+        bands = len(edges) - 1
+        for name, rows, lo, hi in (("points_per_voxel", self.points_per_voxel, 1, MAX_POINTS_PER_VOXEL),
+                                   ("intensity", self.intensity, 2, 1024)):
+            if len(rows) != bands or not all(lo <= len(r) <= hi for r in rows) or \
+                    not all(np.isfinite(np.asarray(r, dtype=np.float64)).all() for r in rows):
+                raise TypError("point_stats", name, f"{bands} rows (one per band) of {lo} to {hi} finite numbers",
+                               rows)
+        if any(min(p) < 0 or sum(p) <= 0 for p in self.points_per_voxel):
+            raise TypError("point_stats", "points_per_voxel", "probabilities >= 0 with a positive sum per band",
+                           self.points_per_voxel)
+        if any(np.diff(q).min() < 0 for q in self.intensity):
+            raise TypError("point_stats", "intensity", "quantiles in ascending order per band", self.intensity)
+
     @classmethod
     def from_dict(cls, d: dict) -> "PointStats":
-        return cls(tuple(d["band_edges"]), tuple(tuple(p) for p in d["points_per_voxel"]),
-                   tuple(tuple(q) for q in d["intensity"]))
+        numbers_only = [d["band_edges"], *d["points_per_voxel"], *d["intensity"]]
+        if not all(_is_number(v) for row in numbers_only for v in row):
+            raise TypError("point_stats", "values", "numbers", d)
+        return cls(tuple(float(v) for v in d["band_edges"]),
+                   tuple(tuple(float(v) for v in p) for p in d["points_per_voxel"]),
+                   tuple(tuple(float(v) for v in q) for q in d["intensity"]))
 
     @classmethod
     def single(cls) -> "PointStats":
@@ -288,22 +322,73 @@ class TYPPipeline:
 
     @classmethod
     def from_pretrained(cls, folder: Path, stage: str = "selftrain") -> "TYPPipeline":
-        """Read a folder written by :meth:`save_pretrained`; ``stage`` is named in errors."""
+        """Read a folder written by :meth:`save_pretrained`; ``stage`` is named in errors.
+
+        Every value of ``pipeline.json`` is checked (:func:`read_settings`) before any module is built."""
         folder = Path(folder)
-        meta = read_json_or_none(folder / PIPELINE_JSON)
-        if meta is None:
-            raise TypError(folder / PIPELINE_JSON, "file", f"a trained generator (run the {stage} stage: dvc repro)",
-                           "missing")
-        try:
-            builders = {"x_vqvae": build_encoder, "box_encoder": build_encoder, "unet": LatentDiffusion.from_config,
-                        "adapter": ZeroAdapter.from_config}
-            parts = {name: (load_module(folder / name, builders[name], stage)[0] if name in meta["components"] else None)
-                     for name in COMPONENTS}
-            return cls(**parts, grid=Grid.from_dict(meta["grid"], where=str(folder / PIPELINE_JSON)),
-                       schedule=meta["schedule"], train_timesteps=int(meta["train_timesteps"]), sampler=meta["sampler"],
-                       num_inference_steps=int(meta["num_inference_steps"]), thresholds=dict(meta["thresholds"]),
-                       point_stats=PointStats.from_dict(meta["point_stats"]),
-                       adapter_scale=float(meta.get("adapter_scale", 1.0)))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise TypError(folder / PIPELINE_JSON, "pipeline", f"the settings the {stage} stage writes",
-                           f"{type(exc).__name__}: {exc}") from None
+        settings = read_settings(folder / PIPELINE_JSON, stage)
+        components = settings.pop("components")
+        builders = {"x_vqvae": build_encoder, "box_encoder": build_encoder, "unet": LatentDiffusion.from_config,
+                    "adapter": ZeroAdapter.from_config}
+        parts = {name: (load_module(folder / name, builders[name], stage)[0] if name in components else None)
+                 for name in COMPONENTS}
+        return cls(**parts, **settings)
+
+
+def read_settings(path: Path, stage: str) -> dict:
+    """``pipeline.json`` as :class:`TYPPipeline`'s keyword arguments besides its modules (plus
+    ``components``), each value checked for its type and a plausible range: nothing in the file is
+    trusted, and a wrong value names the file and field instead of allocating or failing later."""
+    meta = read_json_or_none(path)
+    if meta is None:
+        raise TypError(path, "file", f"a trained generator (run the {stage} stage: dvc repro)", "missing")
+    expected = f"the settings the {stage} stage writes"
+    if not isinstance(meta, dict):
+        raise TypError(path, "pipeline", expected, type(meta).__name__)
+    missing = [k for k in ("components", "grid", "schedule", "train_timesteps", "sampler", "num_inference_steps",
+                           "thresholds", "point_stats") if k not in meta]
+    if missing:
+        raise TypError(path, "pipeline", f"{expected}, with {missing[0]}", f"no key {missing[0]!r}")
+    components = meta["components"]
+    if not isinstance(components, list) or not set(REQUIRED) <= set(components) <= set(COMPONENTS):
+        raise TypError(path, "components", f"a list of {list(REQUIRED)}, and 'adapter' or not", components)
+    if meta["schedule"] not in SCHEDULES or meta["sampler"] not in SCHEDULERS:
+        raise TypError(path, "schedule/sampler", f"a schedule of {sorted(SCHEDULES)} and a sampler of "
+                       f"{sorted(SCHEDULERS)}", [meta["schedule"], meta["sampler"]])
+    steps = _count(path, "train_timesteps", meta["train_timesteps"], MAX_TIMESTEPS)
+    thresholds = meta["thresholds"]
+    if not isinstance(thresholds, dict) or \
+            not all(_is_number(thresholds.get(k)) for k in ("low", "high", "noise_std")) or \
+            not 0 <= thresholds["low"] <= thresholds["high"] <= 1 or not 0 <= thresholds["noise_std"] <= MAX_NOISE_STD:
+        raise TypError(path, "thresholds", f"low, high, noise_std with 0 <= low <= high <= 1 and noise_std in "
+                       f"[0, {MAX_NOISE_STD:g}]", thresholds)
+    scale = meta.get("adapter_scale", 1.0)
+    if not _is_number(scale) or not 0 <= scale <= MAX_ADAPTER_SCALE:
+        raise TypError(path, "adapter_scale", f"a number in [0, {MAX_ADAPTER_SCALE:g}]", scale)
+    try:
+        point_stats = PointStats.from_dict(meta["point_stats"])
+    except (KeyError, TypeError):
+        raise TypError(path, "point_stats", "band_edges, points_per_voxel and intensity lists", meta["point_stats"]) \
+            from None
+    except TypError as exc:
+        raise TypError(path, f"point_stats.{exc.field}", exc.expected, exc.got) from None
+    try:
+        grid = Grid.from_dict(meta["grid"], where=str(path))
+    except TypError as exc:  # the grid's own checks name no file
+        raise TypError(path, f"grid.{exc.field}", exc.expected, exc.got) from None
+    return {"components": components, "grid": grid,
+            "schedule": meta["schedule"], "train_timesteps": steps, "sampler": meta["sampler"],
+            "num_inference_steps": _count(path, "num_inference_steps", meta["num_inference_steps"], steps),
+            "thresholds": dict(thresholds), "point_stats": point_stats, "adapter_scale": float(scale)}
+
+
+def _is_number(value) -> bool:
+    """A finite int or float (no bool, no integer beyond float's range)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and \
+        (not isinstance(value, int) or abs(value) < 2**53) and math.isfinite(value)
+
+
+def _count(path: Path, field: str, value, most: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
+        raise TypError(path, field, f"an integer in [1, {most}]", value)
+    return value

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +33,7 @@ from tasks.generate import EGO_CAR_LWH
 from tasks.generate import MANIFEST as GENERATED_MANIFEST
 from tasks.sim_truth import job_sensor, scenario_job, true_view
 from typ import viz
+from typ.config import GenerateSet
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene
 from typ.geometry import invert
@@ -43,6 +45,8 @@ from typ.sim.sensor import DOMAINS, SensorSpec, domain_spec
 from typ.voxel import Grid, points_to_reference, voxel_centers, voxelize
 
 log = logging.getLogger("typ.show")
+#: what a generated set's references are (GenerateSet.references)
+REFERENCE_KINDS = typing.get_args(typing.get_type_hints(GenerateSet)["references"])
 COLOR_MODES = ("height", "class")
 #: a file truth counts as standing where the generated agent does within these
 SAME_POSE_M, SAME_POSE_DEG = 0.05, 0.5
@@ -104,6 +108,7 @@ def show(path: Path, out: Path, opts: ShowOptions, timestamp: str | None = None)
 
 def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) -> list[Path]:
     scene = read_scene(folder, timestamp)
+    generated, references = generated_agents(folder)  # a bad manifest stops the scenario before any PNG
     prefix = f"{folder.name}_{timestamp}"
     sim_folder = simulated_counterpart(folder, opts)
     job = scenario_job(sim_folder) if sim_folder is not None else None
@@ -123,16 +128,30 @@ def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) ->
         else opts.grid.z_range
     written.append(viz.save_png(viz.panels_figure(panels, title=title, colorbar_z=colorbar),
                                 out / f"{prefix}_agents.png"))
-    manifest = read_json_or_none(folder / GENERATED_MANIFEST)
-    generated = manifest.get("generated_agents") if isinstance(manifest, dict) else None
-    for agent_id in generated or []:
+    for agent_id in generated:
         if agent_id not in scene.agents:
             continue
-        sample = generated_sample(scene, agent_id, references=manifest.get("references", "vehicles"),
+        sample = generated_sample(scene, agent_id, references=references,
                                   sim_folder=sim_folder, job=job, spec=spec, opts=opts)
         written.append(viz.save_png(viz.sample_figure(sample, opts.grid, window=opts.window),
                                     out / f"{prefix}_{agent_id}_sample.png"))
     return written
+
+
+def generated_agents(folder: Path) -> tuple[list[str], str]:
+    """(the agents ``generate`` wrote into a scenario, its reference kind) from its ``_typ.json``;
+    ``([], "vehicles")`` for a scenario that is not generated. A manifest that says it is generated
+    but whose list is not agent names, or whose kind is unknown, raises TypError naming it."""
+    path = folder / GENERATED_MANIFEST
+    manifest = read_json_or_none(path)
+    if not isinstance(manifest, dict) or "generated_agents" not in manifest:
+        return [], "vehicles"
+    agents, references = manifest["generated_agents"], manifest.get("references", "vehicles")
+    if not isinstance(agents, list) or not all(isinstance(a, str) for a in agents):
+        raise TypError(path, "generated_agents", "a list of agent folder names", agents)
+    if references not in REFERENCE_KINDS:
+        raise TypError(path, "references", f"one of {list(REFERENCE_KINDS)}", references)
+    return agents, references
 
 
 def _colorbar(view: AgentView, opts: ShowOptions):

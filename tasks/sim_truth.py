@@ -21,24 +21,38 @@ from pathlib import Path
 import numpy as np
 
 from tasks.simulate import MANIFEST, ScenarioJob
+from typ.config import build_typed, check_simulation
 from typ.errors import TypError
 from typ.io import read_json_or_none
 from typ.sim.raycast import TownFrame, cast, town_frame
-from typ.sim.sensor import SensorSpec, domain_spec
+from typ.sim.sensor import DOMAINS, SensorSpec, domain_spec
 from typ.sim.town import build_town
 from typ.sim.traffic import simulate_traffic
 
 
 def scenario_job(sim_scenario: str | Path) -> ScenarioJob | None:
-    """The job that wrote ``sim_scenario`` when its key still matches this code, else None."""
-    manifest = read_json_or_none(Path(sim_scenario) / MANIFEST)
-    if not isinstance(manifest, dict) or not isinstance(manifest.get("job"), dict):
+    """The job that wrote ``sim_scenario`` when its key still matches this code, else None.
+
+    The manifest is not trusted: anyone can compute a key. A job whose key matches but whose
+    settings this code would never write (an azimuth step of 1e-5 deg, a billion frames)
+    raises TypError naming the file, instead of rebuilding a world that does not fit in memory.
+    """
+    path = Path(sim_scenario) / MANIFEST
+    manifest = read_json_or_none(path)
+    if not isinstance(manifest, dict):
         return None
     try:
-        job = ScenarioJob(**manifest["job"])
-    except TypeError:
+        job = build_typed(ScenarioJob, manifest.get("job"), str(path), "job")
+    except TypError:  # another version's manifest, or not a simulated scenario's
         return None
-    return job if job.key() == manifest.get("key") else None
+    if job.key() != manifest.get("key"):
+        return None
+    if job.domain not in DOMAINS or job.index < 0 or not 0 <= job.seed < 2**64:
+        raise TypError(path, "job", f"a domain of {sorted(DOMAINS)}, an index >= 0 and a 64-bit seed",
+                       [job.domain, job.index, job.seed])
+    check_simulation(str(path), "job", frames=job.n_frames, agents=(job.n_agents, job.n_agents),
+                     azimuth_step_deg=job.azimuth_step_deg, comm_range=job.comm_range, dt=job.dt)
+    return job
 
 
 def job_sensor(job: ScenarioJob) -> SensorSpec:

@@ -37,7 +37,7 @@ def test_load_if_key_retrains_an_older_layout_and_names_a_damaged_one(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"key": "old", "model": {"inputs": 3, "outputs": 2}}))
     assert load_if_key(tmp_path, _linear, "ddpm", "new") is None
     (tmp_path / "config.json").write_text('{"key": "new", "config": ')  # cut off mid-write
-    with pytest.raises(TypError, match=r"config.json: file: expected the JSON config the ddpm stage writes"):
+    with pytest.raises(TypError, match=r"config.json: file: expected a readable JSON config the ddpm stage writes"):
         load_if_key(tmp_path, _linear, "ddpm", "new")
     (tmp_path / "config.json").write_text(json.dumps({"key": "new", "config": {"inputs": 3, "outputs": 2}}))
     with pytest.raises(TypError, match=r"model.safetensors: file: expected trained weights \(run the ddpm stage"):

@@ -38,7 +38,7 @@ def test_override_is_key_by_key_and_keeps_other_defaults():
     ({"profile": "huge"}, "profile", "one of ['tiny', 'small', 'paper']"),
     ({"simulate": {"frames": "3"}}, "simulate.frames", "an integer"),
     ({"simulate": {"frame": 3}}, "simulate.frame", "known keys"),
-    ({"simulate": {"frames": 0}}, "simulate.frames", "> 0"),
+    ({"simulate": {"frames": 0}}, "simulate.frames", "an integer in [1, 10000]"),
     ({"simulate": {"agents_min": 4, "agents_max": 2}}, "simulate.agents_min/agents_max", "agents_min <= agents_max"),
     ({"simulate": {"scenarios": {"mars": {"train": 1}}}}, "simulate.scenarios.mars", "sensor domain"),
     ({"simulate": {"scenarios": {"target": {"train": -1}}}}, "simulate.scenarios.target.train", ">= 0"),
@@ -64,7 +64,7 @@ def test_bad_values_name_the_dotted_field(raw, field, expected):
 def test_bad_yaml_and_missing_file_are_named(tmp_path):
     bad = tmp_path / "params.yaml"
     bad.write_text("simulate: [unclosed\n")
-    with pytest.raises(TypError, match="params.yaml: yaml: expected valid YAML"):
+    with pytest.raises(TypError, match="params.yaml: yaml: expected well-formed YAML"):
         load_config(bad)
     with pytest.raises(TypError, match="file: expected a params.yaml"):
         load_config(tmp_path / "absent.yaml")

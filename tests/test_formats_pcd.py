@@ -84,12 +84,16 @@ def test_packed_float_rgb_binary_and_nan_rows(tmp_path):
     rgb = np.array([(51 << 16) | (1 << 8) | 2, 255 << 16, 0], dtype=np.uint32).view(np.float32)
     rec = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4")])
     rec["x"], rec["y"], rec["z"], rec["rgb"] = [1, 2, np.nan], [0, 0, 0], [0, 0, 0], rgb
-    path = tmp_path / "rgb.pcd"
-    path.write_bytes(HEADER.format(fields="x y z rgb", size="4 4 4 4", type="F F F F", count="1 1 1 1",
-                                   n=3, data="binary").encode() + rec.tobytes())
-    got, _ = read_pcd(path)
-    # the organised-cloud NaN row is dropped; R of the packed colour is the intensity
+    header = HEADER.format(fields="x y z rgb", size="4 4 4 4", type="F F F F", count="1 1 1 1", n=3, data="binary")
+    organised = tmp_path / "rgb.pcd"
+    organised.write_bytes(header.replace("WIDTH 3\nHEIGHT 1", "WIDTH 1\nHEIGHT 3").encode() + rec.tobytes())
+    got, _ = read_pcd(organised)
+    # the organised cloud's NaN pixel is dropped; R of the packed colour is the intensity
     np.testing.assert_allclose(got, [[1, 0, 0, 0.2], [2, 0, 0, 1.0]], atol=1e-7)
+    # an unorganised cloud has no pixels without a return: its NaN point is refused, not dropped
+    flat = tmp_path / "flat.pcd"
+    flat.write_bytes(header.encode() + rec.tobytes())
+    assert "NaN in 1 of 3 points" in str(_error(flat))
 
 
 def test_lzf_back_reference_overlap():
@@ -97,6 +101,55 @@ def test_lzf_back_reference_overlap():
     assert lzf_decompress(bytes([1]) + b"ab" + bytes([(4 << 5) | 0, 1]), 8) == b"abababab"
     with pytest.raises(TypError, match="LZF"):
         lzf_decompress(bytes([(4 << 5) | 0, 9]), 8, where="x.pcd")
+
+
+def _samples(rng: np.random.Generator) -> list[bytes]:
+    """Byte strings that exercise every LZF token: random (literal runs), zero runs (overlapping
+    references at distance 1), short periods, repeats further apart than 8 KiB, and a float cloud."""
+    cloud = np.round(rng.uniform(-40, 40, (3000, 4)), 1).astype(np.float32).tobytes()
+    period = bytes(rng.integers(0, 256, 5, dtype=np.uint8)) * 4000
+    far = bytes(rng.integers(0, 256, 9000, dtype=np.uint8))
+    return [b"", b"a", b"abc", bytes(rng.integers(0, 256, 5000, dtype=np.uint8)), bytes(70_000), period,
+            far + far + far[:100], cloud]
+
+
+def test_lzf_round_trips_an_independent_compressor():
+    from lzf_reference import lzf_compress
+
+    rng = np.random.default_rng(3)
+    for data in _samples(rng):
+        packed = lzf_compress(data)
+        assert lzf_decompress(packed, len(data)) == data
+    assert len(lzf_compress(bytes(70_000))) < 1000  # the zero run really is coded as back references
+
+
+def test_lzf_output_is_bounded_by_the_size_it_must_have():
+    from lzf_reference import lzf_compress
+
+    packed = lzf_compress(bytes(10_000))
+    for size in (0, 9_999):  # a stream that would write more than promised stops at the bound
+        with pytest.raises(TypError, match="valid LZF-compressed data"):
+            lzf_decompress(packed, size, where="x.pcd")
+    with pytest.raises(TypError, match="10001 bytes after LZF decompression"):
+        lzf_decompress(packed, 10_001, where="x.pcd")
+    with pytest.raises(TypError, match="corrupt stream at byte"):
+        lzf_decompress(packed[:-1], 10_000, where="x.pcd")  # a back reference cut short
+
+
+def test_binary_compressed_file_round_trips(tmp_path):
+    from lzf_reference import lzf_compress
+
+    pts, sem = _cloud(300, seed=4)
+    rec = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": pts[:, 3], "semantic": sem}
+    raw = b"".join(np.ascontiguousarray(v).tobytes() for v in rec.values())  # field by field, as PCL lays it out
+    packed = lzf_compress(raw)
+    path = tmp_path / "c.pcd"
+    path.write_bytes(HEADER.format(fields="x y z intensity semantic", size="4 4 4 4 1", type="F F F F U",
+                                   count="1 1 1 1 1", n=300, data="binary_compressed").encode()
+                     + np.array([len(packed), len(raw)], "<u4").tobytes() + packed)
+    got, got_sem = read_pcd(path)
+    np.testing.assert_array_equal(got, pts)
+    np.testing.assert_array_equal(got_sem, sem)
 
 
 def _error(path) -> TypError:

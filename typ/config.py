@@ -21,9 +21,12 @@ from typing import Any, Literal
 import yaml
 
 from typ.errors import TypError
+from typ.inputs import MiB, load_yaml
 
 PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
 PROFILES = ("tiny", "small", "paper")
+#: a params.yaml is a few KB
+MAX_PARAMS_BYTES = 1 * MiB
 DOMAINS = ("source", "target", "real_cav")
 #: ``simulate.sources`` value for a domain the embedded simulator makes
 SIMULATE = "simulate"
@@ -48,6 +51,35 @@ class GridConfig:
                 raise TypError(where, f"{name}.{axis}", "[min, max] with min < max", [lo, hi])
         if any(n <= 0 for n in self.shape):
             raise TypError(where, f"{name}.shape", "3 positive integers (H, W, C)", list(self.shape))
+
+
+#: The simulator's plausible ranges, for params.yaml and a simulated scenario's ``_typ.json`` alike:
+#: beyond them a scenario allocates gigabytes (an azimuth step of 1e-5 deg casts 8.6 GiB of rays)
+#: or runs for hours. Real spinning LiDARs step 0.08 to 0.4 deg; OPV2V's scenarios are ~200 frames.
+AZIMUTH_STEP_DEG = (0.05, 10.0)
+MAX_FRAMES = 10_000
+MAX_AGENTS = 8
+MAX_COMM_RANGE = 1_000.0
+MAX_DT = 10.0
+
+
+def check_simulation(where: str, name: str, *, frames: int, agents: tuple[int, int], azimuth_step_deg: float,
+                     comm_range: float, dt: float) -> None:
+    """The simulation settings against :data:`AZIMUTH_STEP_DEG`, :data:`MAX_FRAMES` and the other caps;
+    the error names ``<name>.<field>``."""
+    if not 1 <= frames <= MAX_FRAMES:
+        raise TypError(where, f"{name}.frames", f"an integer in [1, {MAX_FRAMES}]", frames)
+    lo, hi = agents
+    if not 1 <= lo <= hi <= MAX_AGENTS:
+        raise TypError(where, f"{name}.agents_min/agents_max", f"1 <= agents_min <= agents_max <= {MAX_AGENTS}",
+                       [lo, hi])
+    low, high = AZIMUTH_STEP_DEG
+    if not low <= azimuth_step_deg <= high:
+        raise TypError(where, f"{name}.azimuth_step_deg", f"a step in [{low:g}, {high:g}] deg", azimuth_step_deg)
+    if not 0 < comm_range <= MAX_COMM_RANGE:
+        raise TypError(where, f"{name}.comm_range", f"a distance in (0, {MAX_COMM_RANGE:g}] m", comm_range)
+    if not 0 < dt <= MAX_DT:
+        raise TypError(where, f"{name}.dt", f"a frame interval in (0, {MAX_DT:g}] s", dt)
 
 
 @dataclass(frozen=True)
@@ -170,12 +202,8 @@ class SimulateConfig:
                 raise TypError(where, f"{name}.domains.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
             checks.append((f"{name}.domains.{domain}", *self.for_domain(domain)))
         for label, frames, lo, hi in checks:
-            _positive(where, f"{label}.frames", frames)
-            if not 1 <= lo <= hi <= 8:
-                raise TypError(where, f"{label}.agents_min/agents_max", "1 <= agents_min <= agents_max <= 8", [lo, hi])
-        _positive(where, f"{name}.azimuth_step_deg", self.azimuth_step_deg)
-        _positive(where, f"{name}.comm_range", self.comm_range)
-        _positive(where, f"{name}.dt", self.dt)
+            check_simulation(where, label, frames=frames, agents=(lo, hi), azimuth_step_deg=self.azimuth_step_deg,
+                             comm_range=self.comm_range, dt=self.dt)
         _positive(where, f"{name}.workers", self.workers)
         for domain, splits in self.scenarios.items():
             if domain not in DOMAINS:
@@ -1161,20 +1189,18 @@ def _positive_fields(block, where: str, name: str, *keys: str) -> None:
 
 def load_config(path: str | Path = "params.yaml", *, overrides: dict | None = None) -> Config:
     """Read ``path``, merge it over its profile's defaults, and return a checked :class:`Config`."""
-    path = Path(path)
-    where = str(path)
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except FileNotFoundError:
-        raise TypError(where, "file", "a params.yaml in the project root (run typ from there)") from None
-    except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not text
-        raise TypError(where, "file", "a readable UTF-8 params.yaml",
-                       f"{type(exc).__name__}: {getattr(exc, 'strerror', None) or exc}") from None
-    except yaml.YAMLError as exc:
-        raise TypError(where, "yaml", "valid YAML", str(exc).splitlines()[0]) from None
+    return config_from_dict(read_params(path), where=str(path), overrides=overrides)
+
+
+def read_params(path: str | Path) -> dict:
+    """The mapping in a params.yaml, as written (before the profile's defaults are merged in).
+
+    A missing, unreadable, oversized, malformed or alias-bombed file raises TypError."""
+    raw = load_yaml(path, "UTF-8 params.yaml", max_bytes=MAX_PARAMS_BYTES,
+                    missing="a params.yaml in the project root (run typ from there)") or {}
     if not isinstance(raw, dict):
-        raise TypError(where, "<top level>", "a mapping of stage blocks", type(raw).__name__)
-    return config_from_dict(raw, where=where, overrides=overrides)
+        raise TypError(path, "<top level>", "a mapping of stage blocks", type(raw).__name__)
+    return raw
 
 
 def config_from_dict(raw: dict, *, where: str = "params.yaml", overrides: dict | None = None) -> Config:
@@ -1298,9 +1324,13 @@ def _build(tp, value, where: str, name: str):
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise TypError(where, name, "a number", value)
-        if value != value or value in (float("inf"), float("-inf")):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float's range
+            raise TypError(where, name, "a finite number", value) from None
+        if not math.isfinite(number):
             raise TypError(where, name, "a finite number", value)
-        return float(value)
+        return number
     if tp is str:
         if not isinstance(value, str):
             raise TypError(where, name, "a string", value)
@@ -1308,6 +1338,12 @@ def _build(tp, value, where: str, name: str):
     if tp is Any:
         return value
     raise TypeError(f"config type {tp!r} for {name} is not supported")
+
+
+def build_typed(tp, value, where: str, name: str = ""):
+    """``value`` as type ``tp`` (a dataclass: from a mapping) by the rules params blocks are built with:
+    a missing or unknown key, or a value of the wrong type, raises TypError naming ``where`` and the field."""
+    return _build(tp, value, where, name)
 
 
 def _join(prefix: str, key: str) -> str:

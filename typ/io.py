@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Iterator
 
 from typ.hashcache import cached_digest
+from typ.inputs import MiB, read_regular
 
 TMP_PREFIX = ".tmp-"
 
@@ -123,10 +124,16 @@ def hash_obj(obj) -> str:
 
 
 def read_json_or_none(path: str | os.PathLike):
-    """Parsed JSON at ``path``, or None when the file is absent or not valid JSON (e.g. foreign)."""
+    """Parsed JSON at ``path``, or None when the file is absent or not valid JSON (e.g. foreign).
+
+    A path that is there but is no regular file (a FIFO, a device) or is larger than a manifest
+    can be raises TypError (:func:`typ.inputs.read_regular`): reading it could block or never end."""
+    if not os.path.exists(path):
+        return None
+    raw = read_regular(path, "JSON file", max_bytes=16 * MiB)
     try:
-        return json.loads(Path(path).read_text())
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
+        return json.loads(raw.decode("utf-8"))
+    except (ValueError, RecursionError):  # not JSON, not UTF-8 (UnicodeDecodeError is a ValueError), too deep
         return None
 
 

@@ -48,6 +48,10 @@ def _check_range(value, field: str) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+#: voxels of a grid: the paper's is 512 x 512 x 20 = 5.2 M; every stage holds a few grids of them
+MAX_VOXELS = 1 << 26
+
+
 def _check_shape(value) -> tuple[int, int, int]:
     try:
         dims = tuple(value)
@@ -55,6 +59,8 @@ def _check_shape(value) -> tuple[int, int, int]:
         raise TypError("grid", "shape", "three positive ints (H, W, C)", value) from None
     if len(dims) != 3 or any(isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1 for d in dims):
         raise TypError("grid", "shape", "three positive ints (H, W, C)", value)
+    if math.prod(int(d) for d in dims) > MAX_VOXELS:
+        raise TypError("grid", "shape", f"at most {MAX_VOXELS} voxels (H x W x C)", value)
     return int(dims[0]), int(dims[1]), int(dims[2])
 
 

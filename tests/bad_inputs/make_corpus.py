@@ -11,6 +11,7 @@ returns a :class:`Probe`: how to feed the input to typ, and the texts the error 
 from __future__ import annotations
 
 import json
+import os
 import struct
 import sys
 import zlib
@@ -28,7 +29,7 @@ from typ import geometry
 from typ.formats.binfile import read_bin
 from typ.formats.kitti import read_calib, read_kitti_frame, read_labels
 from typ.formats.nuscenes import read_nuscenes_frame
-from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
+from typ.formats.opv2v import check_scenario, list_agents, list_scenarios, read_scene, write_scene
 from typ.formats.pcd import read_pcd, write_pcd
 from typ.formats.waymo import iter_tfrecord, masked_crc32c, read_waymo_frames, read_waymo_kitti_bin
 from typ.scene import AgentView, Scene
@@ -36,7 +37,7 @@ from typ.store import read_scene_voxels, scene_path, stored_grid, stored_input_h
 from typ.voxel import Grid, box_map, voxelize
 
 KINDS = ("truncated", "misaligned", "wrong dtype", "nan/inf", "empty", "huge", "missing keys", "wrong units",
-         "corrupt crc", "unreadable", "unknown")
+         "corrupt crc", "unreadable", "unknown", "bomb", "not a regular file", "deep", "overflow")
 
 #: the grid of every store case: small enough to write in a millisecond
 GRID = Grid((-8.0, 8.0), (-8.0, 8.0), (-2.0, 2.0), (16, 16, 4))
@@ -46,7 +47,8 @@ GRID = Grid((-8.0, 8.0), (-8.0, 8.0), (-2.0, 2.0), (16, 16, 4))
 class Probe:
     """How to feed one bad input to typ, and what the error must say.
 
-    Exactly one of ``call`` (must raise :class:`typ.errors.TypError`), ``argv`` (``cli.main.main``
+    Exactly one of ``call`` (must raise :class:`typ.errors.TypError`, or return ``returns`` when
+    that is set: an input that must be read correctly, and fast), ``argv`` (``cli.main.main``
     in this process: exit code 2) or ``process`` (``python -m cli`` in a subprocess: exit code 2;
     for cases that start a stage's flow) is set. ``says``: substrings of the message (for the CLI,
     of stderr). ``watch``: the folder whose files and bytes must be the same before and after
@@ -59,11 +61,12 @@ class Probe:
     process: list[str] | None = None
     cwd: Path | None = None
     watch: Path | None = None
+    returns: object = None
 
 
 @dataclass(frozen=True)
 class Case:
-    reader: str        # binfile, pcd, opv2v, kitti, nuscenes, waymo, store, voxel, params, cli, artifact
+    reader: str        # binfile, pcd, opv2v, kitti, nuscenes, waymo, store, voxel, params, cli, artifact, show
     name: str
     kind: str          # one of KINDS
     build: Callable[[Path], Probe] = field(repr=False, compare=False)
@@ -355,7 +358,8 @@ def _(d):
 def _(d):
     good = d / "good.pcd"
     write_pcd(good, cloud())
-    p = write(d / "a.pcd", good.read_bytes().replace(b"POINTS 64", b"POINTS 4294967295"))
+    p = write(d / "a.pcd", good.read_bytes().replace(b"WIDTH 64", b"WIDTH 4294967295")
+              .replace(b"POINTS 64", b"POINTS 4294967295"))
     good.unlink()
     return Probe(says=(str(p), "DATA", "4294967295 points", "truncated"), call=lambda: read_pcd(p))
 
@@ -363,7 +367,7 @@ def _(d):
 @case("pcd", "negative_points_count", "huge")
 def _(d):
     p = write(d / "a.pcd", pcd_text(points="-3"))
-    return Probe(says=(str(p), "POINTS", "one non-negative integer"), call=lambda: read_pcd(p))
+    return Probe(says=(str(p), "POINTS", "one integer in [0, 4294967295]"), call=lambda: read_pcd(p))
 
 
 @case("pcd", "ascii_count_mismatch", "misaligned")
@@ -653,7 +657,7 @@ def _(d):
 @case("nuscenes", "info_not_json", "wrong dtype")
 def _(d):
     b, i = nuscenes_frame(d, '{"data_list": [')
-    return Probe(says=(str(i), "file", "a readable JSON file", "JSONDecodeError"),
+    return Probe(says=(str(i), "file", "a readable mmdet3d info JSON", "JSONDecodeError"),
                  call=lambda: read_nuscenes_frame(b, i))
 
 
@@ -765,7 +769,7 @@ def _(d):
 def _(d):
     length = struct.pack("<Q", 2**62)
     p = _waymo_file(d, length + struct.pack("<I", masked_crc32c(length)) + b"\0" * 64)
-    return Probe(says=(str(p), f"{2**62} payload bytes", "truncated file"), call=lambda: read_waymo_frames(p))
+    return Probe(says=(str(p), "a record of at most 64 MiB", str(2**62)), call=lambda: read_waymo_frames(p))
 
 
 @case("waymo", "payload_not_a_frame", "wrong dtype", needs=WAYMO)
@@ -962,7 +966,7 @@ def _(d):
 @case("params", "invalid_yaml", "wrong dtype")
 def _(d):
     probe = load_params(d, "profile: tiny\nsimulate: {frames: 2\n")
-    probe.says += ("yaml", "valid YAML")
+    probe.says += ("yaml", "well-formed YAML")
     return probe
 
 
@@ -1309,6 +1313,416 @@ def _(d):
     del doc["thresholds"]
     meta.write_text(json_.dumps(doc))
     return Probe(says=(str(meta), "selftrain stage", "thresholds"), call=lambda: TYPPipeline.from_pretrained(d / "generator"))
+
+
+# ---------------------------------------------------------------- built to hang, exhaust memory or be misread
+# Issue 42: each must end in a TypError within 2 s and 1 GB (tests/test_bad_inputs.py runs every
+# reader case in a bounded child process), where typ once hung, ran out of memory, crashed the
+# interpreter, let a raw OverflowError/ValueError/LinAlgError through, or returned other points.
+
+
+def fifo(path: Path) -> Path:
+    """A named pipe nobody writes to: opening it for reading blocks, reading it never ends."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    os.mkfifo(path)
+    return path
+
+
+def sparse(path: Path, size: int, head: bytes = b"") -> Path:
+    """A file of ``size`` bytes that takes no disk: ``head``, then a hole of zeros."""
+    write(path, head)
+    with open(path, "r+b") as f:
+        f.truncate(size)
+    return path
+
+
+def billion_laughs(levels: int = 9) -> str:
+    """A ~540-byte YAML ``lidar_pose`` that expands to 9^levels scalars through aliases."""
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    for k in range(1, levels):
+        lines.append(f"a{k}: &a{k} [" + ", ".join([f"*a{k - 1}"] * 9) + "]")
+    return "\n".join(lines) + f"\nlidar_pose: [*a{levels - 1}, *a{levels - 1}, 0, 0, 0, 0]\nvehicles: {{}}\n"
+
+
+@case("opv2v", "yaml_billion_laughs", "bomb")
+def _(d):
+    y = opv2v_scenario(d, billion_laughs())
+    return Probe(says=(str(y), "yaml", "YAML nodes, aliases expanded"), call=_read_opv2v(y))
+
+
+@case("opv2v", "check_scenario_billion_laughs", "bomb")
+def _(d):
+    y = opv2v_scenario(d, billion_laughs())
+    return Probe(says=(str(y), "YAML nodes"), call=lambda: check_scenario(y.parent.parent))
+
+
+@case("opv2v", "yaml_100k_brackets", "deep")
+def _(d):
+    y = opv2v_scenario(d, "lidar_pose: " + "[" * 100_000)  # crashed libyaml's composer (segfault)
+    return Probe(says=(str(y), "yaml", "nested at most 32 levels deep"), call=_read_opv2v(y))
+
+
+@case("opv2v", "yaml_is_a_fifo", "not a regular file")
+def _(d):
+    y = opv2v_scenario(d)
+    y.unlink()
+    fifo(y)
+    return Probe(says=(str(y), "a readable UTF-8 yaml file", "FIFO"), call=_read_opv2v(y))
+
+
+@case("opv2v", "lidar_pose_400_digits", "overflow")
+def _(d):
+    y = opv2v_scenario(d, f"lidar_pose: [{'9' * 400}, 0, 0, 0, 0, 0]\nvehicles: {{}}\n")
+    return Probe(says=(str(y), "lidar_pose", "finite numbers"), call=_read_opv2v(y))
+
+
+@case("opv2v", "vehicle_id_2e30", "overflow")
+def _(d):
+    doc = opv2v_doc()
+    doc["vehicles"] = {2 * 10**30: doc["vehicles"][7]}
+    y = opv2v_scenario(d, doc)
+    return Probe(says=(str(y), "vehicles.2000000000000000000000000000000", "an integer vehicle id (64-bit)"),
+                 call=_read_opv2v(y))
+
+
+@case("params", "yaml_billion_laughs", "bomb")
+def _(d):
+    probe = load_params(d, billion_laughs().replace("lidar_pose:", "seed:").replace("vehicles: {}", "profile: tiny"))
+    probe.says += ("yaml", "YAML nodes, aliases expanded")
+    return probe
+
+
+@case("params", "float_of_400_digits", "overflow")
+def _(d):
+    probe = load_params(d, f"vqvae:\n  lr: {'9' * 400}\n")
+    probe.says += ("vqvae.lr", "a finite number")
+    return probe
+
+
+@case("pcd", "dev_zero", "not a regular file")
+def _(d):
+    return Probe(says=("/dev/zero", "a readable .pcd file", "character device"), call=lambda: read_pcd("/dev/zero"))
+
+
+@case("pcd", "fifo", "not a regular file")
+def _(d):
+    p = fifo(d / "a.pcd")
+    return Probe(says=(str(p), "a readable .pcd file", "FIFO"), call=lambda: read_pcd(p))
+
+
+@case("pcd", "sparse_4_gib", "huge")
+def _(d):
+    p = sparse(d / "a.pcd", 4 << 30, pcd_text(data="binary", body=""))
+    return Probe(says=(str(p), "a .pcd file of at most 128 MiB", str(4 << 30)), call=lambda: read_pcd(p))
+
+
+def _binary_pcd(d: Path, n: int, width: int, points: int) -> Path:
+    """A binary x y z intensity cloud of ``n`` rows under a header claiming WIDTH (HEIGHT 1) and POINTS."""
+    header = pcd_text(points=points, data="binary", body="")
+    return write(d / "a.pcd", header.replace(f"WIDTH {points}".encode(), f"WIDTH {width}".encode()) + cloud(n).tobytes())
+
+
+@case("pcd", "points_fewer_than_width", "misaligned")
+def _(d):
+    p = _binary_pcd(d, 64, width=64, points=50)  # read as 50 points before: PCL refuses it
+    return Probe(says=(str(p), "POINTS", "WIDTH x HEIGHT = 64 x 1 = 64"), call=lambda: read_pcd(p))
+
+
+@case("pcd", "rows_beyond_points", "misaligned")
+def _(d):
+    p = _binary_pcd(d, 64, width=50, points=50)  # 14 rows more than the header: cut silently before
+    return Probe(says=(str(p), "DATA", "50 points x 16 bytes = 800 bytes", "224 bytes too many"),
+                 call=lambda: read_pcd(p))
+
+
+@case("pcd", "nan_in_unorganised_cloud", "nan/inf")
+def _(d):
+    p = write(d / "a.pcd", pcd_text(body="1 2 3 0.5\nnan 5 6 0.5\n7 8 9 0.5\n"))  # the row was dropped
+    return Probe(says=(str(p), "points", "NaN in 1 of 3 points"), call=lambda: read_pcd(p))
+
+
+@case("pcd", "ascii_beyond_float32", "wrong dtype")
+def _(d):
+    p = write(d / "a.pcd", pcd_text(body="1 2 3 0.5\n1e39 5 6 0.5\n7 8 9 0.5\n"))  # became inf, then dropped
+    return Probe(says=(str(p), "DATA field 'x'", "float32's range"), call=lambda: read_pcd(p))
+
+
+@case("pcd", "ascii_semantic_300", "wrong dtype")
+def _(d):
+    p = write(d / "a.pcd", pcd_text(fields="x y z semantic", size="4 4 4 1", type_="F F F U",
+                                    body="1 2 3 4\n4 5 6 300\n7 8 9 5\n"))  # read as 300 % 256 = 44
+    return Probe(says=(str(p), "DATA field 'semantic'", "integers in [0, 255]"), call=lambda: read_pcd(p))
+
+
+@case("pcd", "count_1e20", "huge")
+def _(d):
+    p = write(d / "a.pcd", pcd_text(count="1 1 1 100000000000000000000"))
+    return Probe(says=(str(p), "SIZE/COUNT", "COUNT in [1, 4096]"), call=lambda: read_pcd(p))
+
+
+@case("pcd", "rgb_count_2", "misaligned")
+def _(d):
+    p = write(d / "a.pcd", pcd_text(fields="x y z rgb", count="1 1 1 2", body="1 2 3 0 0\n4 5 6 0 0\n7 8 9 0 0\n"))
+    return Probe(says=(str(p), "COUNT", "1 for field 'rgb'"), call=lambda: read_pcd(p))
+
+
+def lzf_zero_runs(n_bytes: int) -> bytes:
+    """LZF that inflates to ``n_bytes`` zeros: a 1-byte literal, then back references of 264 bytes at
+    distance 1 (the worst case of a byte-by-byte decoder), then a literal for the rest."""
+    full, rest = divmod(n_bytes - 1, 264)
+    body = bytearray([0, 0]) + bytes([0xE0, 264 - 9, 0]) * full
+    while rest:
+        run = min(rest, 32)  # a literal run holds at most 32 bytes
+        body += bytes([run - 1]) + bytes(run)
+        rest -= run
+    return bytes(body)
+
+
+@case("pcd", "lzf_zero_runs_megabyte", "bomb")
+def _(d):
+    n = 1_500_000  # 24 MB of zero points from 270 KB: the pure-Python decoder took about 10 s
+    packed = lzf_zero_runs(16 * n)
+    p = write(d / "a.pcd", pcd_text(points=n, data="binary_compressed", body="")
+              + struct.pack("<II", len(packed), 16 * n) + packed)
+    read = lambda: read_pcd(p)[0].shape  # noqa: E731
+    return Probe(says=(), call=read, returns=(n, 4))
+
+
+@case("binfile", "fifo", "not a regular file")
+def _(d):
+    p = fifo(d / "000000.bin")
+    return Probe(says=(str(p), "a readable point cloud file", "FIFO"), call=lambda: read_bin(p, 4))
+
+
+@case("kitti", "nuscenes_x5_bin_as_velodyne", "misaligned")
+def _(d):
+    root = kitti_frame(d)
+    x5 = cloud(64, columns=5)
+    x5[:, 3] = np.arange(64) * 4.0  # intensity 0..255, nuScenes' scale; 64 x 20 B is a multiple of 16
+    x5[:, 4] = np.arange(64) % 32   # ring index
+    velo = write(root / "training" / "velodyne" / "000000.bin", x5.tobytes())
+    return Probe(says=(str(velo), "reflectance", "values in [0, 1]"), call=lambda: read_kitti_frame(root, 0))
+
+
+@case("kitti", "calib_singular", "wrong units")
+def _(d):
+    root = kitti_frame(d, calib=CALIB.replace("R0_rect: 9.999e-01 1.009e-02 -8.51e-03", "R0_rect: 0 0 0"))
+    calib = root / "training" / "calib" / "000000.txt"
+    return Probe(says=(str(calib), "R0_rect", "a rotation", "singular values"), call=lambda: read_kitti_frame(root, 0))
+
+
+@case("kitti", "calib_is_a_fifo", "not a regular file")
+def _(d):
+    root = kitti_frame(d, calib=None)
+    calib = fifo(root / "training" / "calib" / "000000.txt")
+    return Probe(says=(str(calib), "a readable KITTI calib file", "FIFO"), call=lambda: read_kitti_frame(root, 0))
+
+
+@case("nuscenes", "info_is_a_fifo", "not a regular file")
+def _(d):
+    b, i = nuscenes_frame(d)
+    i.unlink()
+    fifo(i)
+    return Probe(says=(str(i), "a readable mmdet3d info JSON", "FIFO"), call=lambda: read_nuscenes_frame(b, i))
+
+
+@case("nuscenes", "category_index_a_list", "wrong dtype")
+def _(d):
+    info = nuscenes_info()
+    info["metainfo"]["categories"]["car"] = [0]  # unhashable as a dict key: TypeError before
+    b, i = nuscenes_frame(d, info)
+    return Probe(says=(str(i), "metainfo.categories", "integer label index"), call=lambda: read_nuscenes_frame(b, i))
+
+
+@case("nuscenes", "ego2global_400_digits", "overflow")
+def _(d):
+    pose = np.eye(4).tolist()
+    pose[0][3] = 10**400  # OverflowError before
+    b, i = nuscenes_frame(d, nuscenes_info(ego2global=pose))
+    return Probe(says=(str(i), "ego2global[0]", "finite numbers"), call=lambda: read_nuscenes_frame(b, i))
+
+
+@case("nuscenes", "bbox_of_5000_digits", "overflow")
+def _(d):
+    b, i = nuscenes_frame(d, json.dumps(nuscenes_info()).replace("18.4", "9" * 5000))  # json: ValueError before
+    return Probe(says=(str(i), "a readable mmdet3d info JSON", "ValueError"), call=lambda: read_nuscenes_frame(b, i))
+
+
+@case("nuscenes", "info_100k_brackets", "deep")
+def _(d):
+    b, i = nuscenes_frame(d, '{"data_list": ' + "[" * 100_000)  # json: RecursionError before
+    return Probe(says=(str(i), "a readable mmdet3d info JSON", "RecursionError"),
+                 call=lambda: read_nuscenes_frame(b, i))
+
+
+@case("waymo", "dev_urandom", "not a regular file", needs=WAYMO)
+def _(d):
+    return Probe(says=("/dev/urandom", "a readable TFRecord file", "character device"),
+                 call=lambda: read_waymo_frames("/dev/urandom"))
+
+
+def zlib_zeros(n_chunks: int, chunk: int = 16 << 20) -> bytes:
+    """A zlib stream of ``n_chunks x chunk`` zero bytes, made from one compressed chunk repeated
+    (each ends in a full flush, so the blocks stand alone) and the checksum of the whole: over
+    n zeros Adler-32's sums are a = 1, b = n mod 65521."""
+    co = zlib.compressobj(9)
+    first = co.compress(bytes(chunk)) + co.flush(zlib.Z_FULL_FLUSH)
+    header, block = first[:2], first[2:]
+    adler = (n_chunks * chunk % 65521) << 16 | 1
+    return header + block * n_chunks + co.flush()[:-4] + struct.pack(">I", adler)
+
+
+@case("waymo", "range_image_zlib_bomb", "bomb", needs=WAYMO)
+def _(d):
+    bomb = zlib_zeros(96)  # 1.5 MB that inflates to 1.5 GiB
+    p = _waymo_file(d, tfrecord(waymo_frame(compressed=bomb).SerializeToString()))
+    return Probe(says=(str(p), "ri_return1", "a range image of at most", "zlib bomb"),
+                 call=lambda: read_waymo_frames(p))
+
+
+@case("waymo", "range_image_shape_wraps_to_0", "overflow", needs=WAYMO)
+def _(d):
+    from waymo_open_dataset import dataset_pb2
+
+    matrix = dataset_pb2.MatrixFloat()
+    matrix.shape.dims.extend([2**30, 2**30, 16])  # their int64 product is 2^64 = 0: ValueError before
+    p = _waymo_file(d, tfrecord(waymo_frame(compressed=zlib.compress(matrix.SerializeToString())).SerializeToString()))
+    return Probe(says=(str(p), "ri_return1", "a 3-d matrix whose shape matches its data"),
+                 call=lambda: read_waymo_frames(p))
+
+
+# -------- typ show: the manifests (_typ.json) of simulated and generated scenarios
+
+
+def _show(folder: Path, out: Path):
+    from tasks.show import ShowOptions, show
+    from typ import viz
+    from typ.voxel import TINY_GRID
+
+    return lambda: show(folder, out, ShowOptions(grid=TINY_GRID, window=viz.Window(resolution=0.4), resim=False))
+
+
+@case("show", "sim_job_azimuth_step_1e-5", "huge")
+def _(d):
+    from tasks.simulate import MANIFEST, ScenarioJob
+
+    y = opv2v_scenario(d)
+    job = ScenarioJob("target", "train", 0, 7, 1, 4, 1e-5, 70.0, 0.1)  # its key matches: anyone can compute one
+    manifest = write(y.parent.parent / MANIFEST, json.dumps({"job": job.describe(), "key": job.key()}))
+    return Probe(says=(str(manifest), "job.azimuth_step_deg", "a step in [0.05, 10] deg"),
+                 call=_show(y.parent.parent, d / "out"), watch=y.parent.parent)
+
+
+@case("show", "yaml_billion_laughs", "bomb")
+def _(d):
+    y = opv2v_scenario(d, billion_laughs())
+    return Probe(says=(str(y), "YAML nodes, aliases expanded"), call=_show(y.parent.parent, d / "out"),
+                 watch=y.parent.parent)
+
+
+@case("show", "generated_agents_not_a_list", "wrong dtype")
+def _(d):
+    from tasks.generate import MANIFEST
+
+    y = opv2v_scenario(d)
+    manifest = write(y.parent.parent / MANIFEST, json.dumps({"generated_agents": 5}))  # TypeError before
+    return Probe(says=(str(manifest), "generated_agents", "a list of agent folder names"),
+                 call=_show(y.parent.parent, d / "out"))
+
+
+@case("show", "manifest_is_a_fifo", "not a regular file")
+def _(d):
+    from tasks.generate import MANIFEST
+
+    y = opv2v_scenario(d)
+    manifest = fifo(y.parent.parent / MANIFEST)
+    return Probe(says=(str(manifest), "a readable JSON file", "FIFO"), call=_show(y.parent.parent, d / "out"),
+                 watch=y.parent.parent)
+
+
+# -------- trained artifacts: config.json, model.safetensors and pipeline.json are not trusted
+
+
+@case("artifact", "vqvae_config_huge_sizes", "huge", needs="torch")
+def _(d):
+    from tasks.vqvae import load_model, save_model
+
+    save_model(_tiny_vqvae(), d / "x")
+    path = d / "x" / "config.json"
+    doc = json.loads(path.read_text())
+    doc["config"]["block_out_channels"] = [100_000, 100_000]  # 360 GB of convolution weights before
+    path.write_text(json.dumps(doc))
+    return Probe(says=(str(d / "x" / "model.safetensors"), "weights", "vqvae stage"), call=lambda: load_model(d / "x"))
+
+
+@case("artifact", "vqvae_config_zero_groups", "wrong units", needs="torch")
+def _(d):
+    from tasks.vqvae import load_model, save_model
+
+    save_model(_tiny_vqvae(), d / "x")
+    path = d / "x" / "config.json"
+    doc = json.loads(path.read_text())
+    doc["config"]["norm_num_groups"] = 0  # ZeroDivisionError before
+    path.write_text(json.dumps(doc))
+    return Probe(says=(str(path), "config", "ZeroDivisionError"), call=lambda: load_model(d / "x"))
+
+
+@case("artifact", "weights_sparse_4_gib", "huge", needs="torch")
+def _(d):
+    from tasks.vqvae import load_model, save_model
+
+    save_model(_tiny_vqvae(), d / "x")
+    w = d / "x" / "model.safetensors"
+    sparse(w, 4 << 30, w.read_bytes())  # read whole before any check: MemoryError
+    return Probe(says=(str(w), "of at most 1024 MiB", str(4 << 30)), call=lambda: load_model(d / "x"))
+
+
+@case("artifact", "weights_header_offsets_past_the_end", "truncated", needs="torch")
+def _(d):
+    from tasks.vqvae import load_model, save_model
+
+    save_model(_tiny_vqvae(), d / "x")
+    w = d / "x" / "model.safetensors"
+    raw = w.read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    header = json.loads(raw[8:8 + n])
+    name = sorted(k for k in header if k != "__metadata__")[0]
+    header[name]["data_offsets"][1] += 4 << 30  # a tensor claimed to span 4 GiB more
+    text = json.dumps(header).encode()
+    w.write_bytes(len(text).to_bytes(8, "little") + text + raw[8 + n:])
+    return Probe(says=(str(w), f"header.{name}", "data_offsets"), call=lambda: load_model(d / "x"))
+
+
+def _generator(d: Path, **changes) -> Probe:
+    import json as json_
+
+    from models.vqvae import PooledBoxMap
+    from tasks.pipeline import TYPPipeline
+
+    grid = Grid((-6.4, 6.4), (-6.4, 6.4), (-0.75, 3.25), (16, 16, 4))
+    pipe = TYPPipeline(_tiny_vqvae(), PooledBoxMap(downsample=2), _tiny_unet(), None, grid, "linear", 1000, "ddim",
+                       2, {"low": 0.5, "high": 0.5, "noise_std": 0.0})
+    pipe.save_pretrained(d / "generator")
+    meta = d / "generator" / "pipeline.json"
+    doc = json_.loads(meta.read_text())
+    doc.update(changes)
+    meta.write_text(json_.dumps(doc))
+    return Probe(says=(str(meta),), call=lambda: TYPPipeline.from_pretrained(d / "generator"))
+
+
+@case("artifact", "generator_grid_of_a_trillion_voxels", "huge", needs="torch")
+def _(d):
+    probe = _generator(d, grid={"x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4], "z_range": [-0.75, 3.25],
+                                "shape": [100_000, 100_000, 100]})
+    probe.says += ("shape", "at most 67108864 voxels")
+    return probe
+
+
+@case("artifact", "generator_thresholds_reversed", "wrong units", needs="torch")
+def _(d):
+    probe = _generator(d, thresholds={"low": 0.9, "high": 0.1, "noise_std": 0.0})
+    probe.says += ("thresholds", "0 <= low <= high <= 1")
+    return probe
 
 
 # ---------------------------------------------------------------- as a script

@@ -12,10 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from typ.errors import TypError
+from typ.inputs import MiB, read_regular
 
 #: Coordinates beyond this (metres) are not LiDAR returns in the sensor's own frame (the
 #: longest-range automotive sensors see ~1 km): the bytes are not float32 LE, or not metres.
 MAX_ABS_COORDINATE = 1e4
+#: A point cloud file: ten times the largest single scan (128 beams, two returns, ~1 M points
+#: of 32 bytes); within it a hostile file stays well under 1 GB of memory to check.
+MAX_CLOUD_BYTES = 128 * MiB
 
 
 def read_bin(path: str | os.PathLike, columns: int) -> np.ndarray:
@@ -30,12 +34,7 @@ def read_bin(path: str | os.PathLike, columns: int) -> np.ndarray:
     if columns < 3:
         raise TypError(p, "columns", "at least 3 (x, y, z)", columns)
     record = 4 * columns
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise TypError(p, "file", "an existing point cloud file", "no such file") from None
-    except OSError as exc:
-        raise TypError(p, "file", "a readable point cloud file", f"{type(exc).__name__}: {exc.strerror}") from None
+    raw = read_regular(p, "point cloud file", max_bytes=MAX_CLOUD_BYTES)
     if len(raw) == 0:
         raise TypError(p, "points", f"at least one point ({record} bytes)", "empty file (0 bytes)")
     if len(raw) % record:

@@ -5,6 +5,19 @@ Labels are in the rectified camera-2 frame (x right, y down, z forward) with ``(
 the centre of the box's bottom face; they are moved into the Velodyne frame with
 ``inv(R0_rect @ Tr_velo_to_cam)`` (both padded to 4x4): centre_cam = (x, y - h/2, z),
 yaw_lidar = -rotation_y - pi/2, size (l, w, h). ``DontCare`` rows are skipped.
+
+A ``.bin`` has no header, so another dataset's cloud can pass for a KITTI one. What is
+detectable, and refused: a size that is no multiple of 16 bytes; coordinates beyond
+:data:`~typ.formats.binfile.MAX_ABS_COORDINATE` or not finite (float64, big-endian, the
+microsecond timestamps of a Waymo x6 file landing in x, y, z); and a reflectance outside
+[0, 1], KITTI's range. A nuScenes x5 file (``x y z intensity ring``, intensity 0..255) whose
+point count is a multiple of 4 has a multiple of 16 bytes, and its rows read four floats
+out of phase: the fourth column then holds, in turn, intensity, z, y, x and ring index, so
+any real scan puts values outside [0, 1] there. Not detectable: a float32 x4 cloud of another
+sensor whose fourth column happens to lie in [0, 1], or one in another frame within 10 km.
+Calibration matrices must be near-rotations (``R0_rect``; the rotation part of
+``Tr_velo_to_cam``): singular values within :data:`RIGID_TOLERANCE` of 1, so a singular or
+scaled matrix is refused where it is read, not met as a LinAlgError when labels are moved.
 """
 from __future__ import annotations
 
@@ -16,12 +29,17 @@ import numpy as np
 from typ import geometry
 from typ.errors import TypError
 from typ.formats.binfile import read_bin
+from typ.inputs import MiB, read_text
 from typ.scene import AgentView, Scene
 
 _CALIB_SHAPES = {"R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
 _LABEL_FIELDS = 15  # type truncated occluded alpha x1 y1 x2 y2 h w l x y z rotation_y (+ score)
 #: No labelled object is longer than this (metres): larger sizes are centimetres or garbage.
 MAX_BOX_SIZE = 100.0
+#: calib and label files are a few KB
+MAX_TEXT_BYTES = 1 * MiB
+#: how far a calibration rotation's singular values may stray from 1 (KITTI's: about 1e-4)
+RIGID_TOLERANCE = 0.1
 
 
 def read_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -31,12 +49,7 @@ def read_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
     reshaped to (3, 4) when they have 12 numbers.
     """
     p = Path(path)
-    try:
-        lines = p.read_text(encoding="ascii").splitlines()
-    except FileNotFoundError:
-        raise TypError(p, "file", "an existing KITTI calib file", "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TypError(p, "file", "a readable text calib file", type(exc).__name__) from None
+    lines = read_text(p, "KITTI calib file", max_bytes=MAX_TEXT_BYTES, encoding="ascii").splitlines()
     calib: dict[str, np.ndarray] = {}
     for number, line in enumerate(lines, start=1):
         if not line.strip():
@@ -57,6 +70,11 @@ def read_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
         calib[key] = calib[key].reshape(shape)
         if not np.isfinite(calib[key]).all():
             raise TypError(p, key, "finite numbers", calib[key].ravel().tolist())
+        stretch = np.linalg.svd(calib[key][:3, :3], compute_uv=False)
+        if np.abs(stretch - 1.0).max() > RIGID_TOLERANCE:
+            raise TypError(p, key, f"a rotation{' and a translation' if shape[1] == 4 else ''} "
+                           f"(singular values 1 +- {RIGID_TOLERANCE:g})",
+                           f"singular values {np.round(stretch, 4).tolist()}")
     return calib
 
 
@@ -72,12 +90,7 @@ def velo_to_rect(calib: dict[str, np.ndarray]) -> np.ndarray:
 def read_labels(path: str | os.PathLike, calib: dict[str, np.ndarray]) -> tuple[np.ndarray, tuple[str, ...]]:
     """label_2 file -> ``(K, 7)`` float64 boxes in the Velodyne frame and K lower-case class names."""
     p = Path(path)
-    try:
-        lines = p.read_text(encoding="ascii").splitlines()
-    except FileNotFoundError:
-        raise TypError(p, "file", "an existing KITTI label file", "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TypError(p, "file", "a readable text label file", type(exc).__name__) from None
+    lines = read_text(p, "KITTI label file", max_bytes=MAX_TEXT_BYTES, encoding="ascii").splitlines()
     # the matrix is affine but not exactly rigid (R0_rect, calibration noise): use a general inverse
     rect_to_velo = np.linalg.inv(velo_to_rect(calib))
     boxes, labels = [], []
@@ -105,6 +118,19 @@ def read_labels(path: str | os.PathLike, calib: dict[str, np.ndarray]) -> tuple[
     return np.array(boxes, dtype=np.float64).reshape(-1, 7), tuple(labels)
 
 
+def read_velodyne(path: str | os.PathLike) -> np.ndarray:
+    """A KITTI velodyne ``.bin`` -> (N, 4) float32 ``[x, y, z, reflectance]``, reflectance in [0, 1]
+    (see the module doc for what this can and cannot tell from another dataset's file)."""
+    points = read_bin(path, 4)
+    outside = (points[:, 3] < 0.0) | (points[:, 3] > 1.0)
+    if outside.any():
+        raise TypError(path, "reflectance", "values in [0, 1] in the fourth column (KITTI's float32 x4 layout); "
+                       "a nuScenes (x5) or Waymo (x6) file reads out of phase here",
+                       f"{int(outside.sum())} of {len(points)} points outside, "
+                       f"such as {float(points[outside, 3][0]):g}")
+    return points
+
+
 def read_kitti_frame(root: str | os.PathLike, frame_id: int | str, split: str = "training") -> Scene:
     """One KITTI frame as a single-agent Scene (agent ``"ego"``, pose identity = the Velodyne frame).
 
@@ -118,7 +144,7 @@ def read_kitti_frame(root: str | os.PathLike, frame_id: int | str, split: str = 
     bin_path = next((c for c in candidates if c.is_file()), None)
     if bin_path is None:
         raise TypError(base, "velodyne", f"{name}.bin under velodyne/ or velodyne_reduced/", "not found")
-    points = read_bin(bin_path, 4)
+    points = read_velodyne(bin_path)
     label_path = base / "label_2" / f"{name}.txt"
     boxes, labels = np.zeros((0, 7)), ()
     if label_path.parent.is_dir():

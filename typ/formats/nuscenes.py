@@ -5,10 +5,13 @@ ring]`` in the LIDAR_TOP frame (x right, y forward, z up). Boxes: each instance'
 ``bbox_3d = [x, y, z, l, w, h, yaw]`` in the same frame with z the gravity centre (which is
 typ's box convention), class ``metainfo.categories`` inverted at ``bbox_label_3d``; label -1
 (ignored classes) is skipped.
+
+The info JSON is read as untrusted: at most :data:`MAX_INFO_BYTES`, nested at most
+:data:`typ.inputs.MAX_DEPTH`, and every value used checked for its type and range, so a
+record of the wrong shape is a TypError naming its field, never a TypeError or OverflowError.
 """
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -16,7 +19,12 @@ import numpy as np
 
 from typ.errors import TypError
 from typ.formats.binfile import read_bin
+from typ.inputs import MiB, finite_matrix, finite_numbers, load_json
 from typ.scene import AgentView, Scene
+
+#: mmdet3d's info file for one split of nuScenes trainval is tens of MB; a hostile JSON within
+#: this cap stays under 1 GB once parsed
+MAX_INFO_BYTES = 128 * MiB
 
 
 def read_nuscenes_frame(pcd_bin_path: str | os.PathLike, info_json_path: str | os.PathLike) -> Scene:
@@ -31,8 +39,8 @@ def read_nuscenes_frame(pcd_bin_path: str | os.PathLike, info_json_path: str | o
     cloud = read_bin(bin_path, 5)
     points = np.concatenate([cloud[:, :3], cloud[:, 3:4] / np.float32(255.0)], axis=1).astype(np.float32)
     lidar = info["lidar_points"]
-    pose = _matrix(info_path, "ego2global", info.get("ego2global")) @ \
-        _matrix(info_path, "lidar_points.lidar2ego", lidar.get("lidar2ego"))
+    pose = finite_matrix(info_path, "ego2global", info.get("ego2global"), 4, 4) @ \
+        finite_matrix(info_path, "lidar_points.lidar2ego", lidar.get("lidar2ego"), 4, 4)
     names = {index: name for name, index in categories.items()}
     instances = info.get("instances", [])
     if not isinstance(instances, list):
@@ -42,55 +50,48 @@ def read_nuscenes_frame(pcd_bin_path: str | os.PathLike, info_json_path: str | o
         if not isinstance(inst, dict):
             raise TypError(info_path, f"instances[{k}]", "a mapping with bbox_label_3d and bbox_3d", inst)
         label = inst.get("bbox_label_3d", inst.get("bbox_label"))
-        if label == -1:
+        is_int = isinstance(label, int) and not isinstance(label, bool)
+        if is_int and label == -1:
             continue
-        if isinstance(label, bool) or not isinstance(label, int) or label not in names:
+        if not is_int or label not in names:
             raise TypError(info_path, f"instances[{k}].bbox_label_3d", f"a category index in {sorted(names)} or -1",
                            label)
-        box = inst.get("bbox_3d")
-        if not isinstance(box, list) or len(box) != 7 or \
-                not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box):
-            raise TypError(info_path, f"instances[{k}].bbox_3d", "7 numbers [x, y, z, l, w, h, yaw]", box)
-        if not np.isfinite(box).all():
-            raise TypError(info_path, f"instances[{k}].bbox_3d", "7 finite numbers [x, y, z, l, w, h, yaw]", box)
-        boxes.append(box)
+        boxes.append(finite_numbers(info_path, f"instances[{k}].bbox_3d", inst.get("bbox_3d"), 7))
         labels.append(names[label])
         ids.append(k)
     view = AgentView(agent_id="ego", points=points, pose=pose, boxes=np.array(boxes, dtype=np.float64).reshape(-1, 7),
                      box_labels=labels, box_ids=np.array(ids, dtype=np.int64), where=str(bin_path))
-    token = str(info.get("token", bin_path.name))
-    return Scene(scenario=token, timestamp=str(info.get("timestamp", "")), agents={"ego": view},
-                 dataset="nuscenes", split=str(info.get("split", "")))
+    token = _name(info_path, "token", info.get("token", bin_path.name))
+    return Scene(scenario=token, timestamp=_name(info_path, "timestamp", info.get("timestamp", "")),
+                 agents={"ego": view}, dataset="nuscenes", split=_name(info_path, "split", info.get("split", "")))
 
 
 def _find_record(info_path: Path, bin_name: str) -> tuple[dict, dict[str, int]]:
-    try:
-        doc = json.loads(info_path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise TypError(info_path, "file", "an existing mmdet3d info JSON", "no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise TypError(info_path, "file", "a readable JSON file", f"{type(exc).__name__}: {exc}") from None
+    """(the record whose lidar_path names ``bin_name``, the categories name -> label index)."""
+    doc = load_json(info_path, "mmdet3d info JSON", max_bytes=MAX_INFO_BYTES)
     if not isinstance(doc, dict) or not isinstance(doc.get("data_list"), list):
         raise TypError(info_path, "data_list", "a list of info records (mmdet3d v1.x)", "missing")
     metainfo = doc.get("metainfo")
     categories = metainfo.get("categories") if isinstance(metainfo, dict) else None
-    if not isinstance(categories, dict) or not categories:
-        raise TypError(info_path, "metainfo.categories", "a mapping of class name -> label index", categories)
+    if not isinstance(categories, dict) or not categories or \
+            not all(isinstance(v, int) and not isinstance(v, bool) for v in categories.values()):
+        raise TypError(info_path, "metainfo.categories", "a mapping of class name -> integer label index", categories)
     for k, record in enumerate(doc["data_list"]):
         if not isinstance(record, dict) or not isinstance(record.get("lidar_points"), dict):
             raise TypError(info_path, f"data_list[{k}]", "a mapping with lidar_points {lidar_path, lidar2ego}",
                            record if not isinstance(record, dict) else record.get("lidar_points"))
-        if Path(str(record["lidar_points"].get("lidar_path", ""))).name == bin_name:
+        lidar_path = record["lidar_points"].get("lidar_path", "")
+        if not isinstance(lidar_path, str):
+            raise TypError(info_path, f"data_list[{k}].lidar_points.lidar_path", "a file name", lidar_path)
+        if Path(lidar_path).name == bin_name:
             return record, categories
     raise TypError(info_path, "data_list[].lidar_points.lidar_path", f"a record for {bin_name}",
                    f"{len(doc['data_list'])} records, none for that file")
 
 
-def _matrix(info_path: Path, field: str, value) -> np.ndarray:
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TypError(info_path, field, "a 4x4 matrix of numbers", value) from None
-    if m.shape != (4, 4) or not np.isfinite(m).all():
-        raise TypError(info_path, field, "a finite 4x4 matrix", m.shape)
-    return m
+def _name(info_path: Path, field: str, value) -> str:
+    """A token, timestamp or split as text: a string or a number (mmdet3d's timestamps are seconds)."""
+    if isinstance(value, str) or isinstance(value, float) or \
+            (isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**63):
+        return str(value)  # an integer of 5,000 digits would make str() raise
+    raise TypError(info_path, field, "a string or a number", value)

@@ -30,6 +30,7 @@ import yaml
 from typ import geometry
 from typ.errors import TypError
 from typ.formats.pcd import read_pcd, read_pcd_header, write_pcd
+from typ.inputs import MiB, finite_numbers, load_yaml
 from typ.io import write_text
 from typ.scene import AgentView, Scene
 
@@ -37,6 +38,10 @@ from typ.scene import AgentView, Scene
 META_KEYS: tuple[str, ...] = ("ego_speed", "true_ego_pos", "sensor")
 #: Class name of a vehicle whose yaml entry has no ``obj_type`` (OPV2V has only cars).
 DEFAULT_OBJ_TYPE = "car"
+#: an agent's yaml with a hundred vehicles is about 15 KB
+MAX_YAML_BYTES = 1 * MiB
+#: CARLA actor ids are 32-bit; the store keeps ids as int64
+_ID_RANGE = range(-2**63, 2**63)
 
 
 class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
@@ -95,7 +100,7 @@ def read_scene(scenario_dir: str | os.PathLike, timestamp: str, *, agents: list[
     for agent in ids:
         yaml_path = s / agent / f"{timestamp}.yaml"
         doc = _load_yaml(yaml_path)
-        lidar_pose = _numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
+        lidar_pose = finite_numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
         boxes, labels, box_ids = _vehicle_boxes(yaml_path, doc, lidar_pose)
         pcd_path = yaml_path.with_suffix(".pcd")
         if not pcd_path.is_file():
@@ -147,7 +152,7 @@ def check_scenario(scenario_dir: str | os.PathLike) -> dict[str, int]:
         for ts in stamps:
             yaml_path = s / agent / f"{ts}.yaml"
             doc = _load_yaml(yaml_path)
-            lidar_pose = _numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
+            lidar_pose = finite_numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
             boxes, _, _ = _vehicle_boxes(yaml_path, doc, lidar_pose)
             header = read_pcd_header(yaml_path.with_suffix(".pcd"))
             counts["views"] += 1
@@ -207,35 +212,11 @@ def _is_rsu(agent: str) -> bool:
 
 
 def _load_yaml(path: Path) -> dict:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise TypError(path, "yaml", "an existing agent yaml", "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TypError(path, "yaml", "a readable UTF-8 yaml file", type(exc).__name__) from None
-    try:
-        doc = yaml.load(text, Loader=_Loader)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown position"
-        raise TypError(path, "yaml", "well-formed YAML", f"{getattr(exc, 'problem', exc)} at {at}") from None
+    doc = load_yaml(path, "UTF-8 yaml file", max_bytes=MAX_YAML_BYTES, loader=_Loader, field="yaml",
+                    missing="an existing agent yaml")
     if not isinstance(doc, dict):
         raise TypError(path, "yaml", "a mapping with lidar_pose and vehicles", type(doc).__name__)
     return doc
-
-
-def _numbers(path: Path, field: str, value, length: int) -> np.ndarray:
-    """``value`` as a float64 vector of ``length`` finite numbers, else TypError naming ``field``."""
-    if value is None:
-        raise TypError(path, field, f"a list of {length} numbers", "missing")
-    if not isinstance(value, (list, tuple)) or len(value) != length:
-        raise TypError(path, field, f"a list of {length} numbers", value)
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-        raise TypError(path, field, f"{length} numbers", value)
-    arr = np.asarray(value, dtype=np.float64)
-    if not np.isfinite(arr).all():
-        raise TypError(path, field, "finite numbers", value)
-    return arr
 
 
 def _vehicle_boxes(path: Path, doc: dict, lidar_pose: np.ndarray):
@@ -250,14 +231,14 @@ def _vehicle_boxes(path: Path, doc: dict, lidar_pose: np.ndarray):
     boxes, labels, ids = [], [], []
     for vid, v in vehicles.items():
         field = f"vehicles.{vid}"
-        if isinstance(vid, bool) or not isinstance(vid, int):
-            raise TypError(path, field, "an integer vehicle id", vid)
+        if isinstance(vid, bool) or not isinstance(vid, int) or vid not in _ID_RANGE:
+            raise TypError(path, field, "an integer vehicle id (64-bit)", vid)
         if not isinstance(v, dict):
             raise TypError(path, field, "a mapping with location, angle, extent, center", type(v).__name__)
-        location = _numbers(path, f"{field}.location", v.get("location"), 3)
-        angle = _numbers(path, f"{field}.angle", v.get("angle"), 3)
-        extent = _numbers(path, f"{field}.extent", v.get("extent"), 3)
-        center = _numbers(path, f"{field}.center", v.get("center", [0.0, 0.0, 0.0]), 3)
+        location = finite_numbers(path, f"{field}.location", v.get("location"), 3)
+        angle = finite_numbers(path, f"{field}.angle", v.get("angle"), 3)
+        extent = finite_numbers(path, f"{field}.extent", v.get("extent"), 3)
+        center = finite_numbers(path, f"{field}.center", v.get("center", [0.0, 0.0, 0.0]), 3)
         if (extent <= 0).any():
             raise TypError(path, f"{field}.extent", "positive half sizes", extent.tolist())
         obj_type = v.get("obj_type", DEFAULT_OBJ_TYPE)

@@ -11,10 +11,17 @@ in the **vehicle frame** (x forward, y left, z up), which plays the sensor frame
 agent ``"ego"``; its pose is ``frame.pose.transform`` (vehicle -> world). Intensity is
 ``tanh(raw intensity)`` (OpenPCDet's and mmdet3d's ``norm_intensity`` convention), since raw
 Waymo intensities are unbounded.
+
+Sizes are bounded before anything is allocated: a record at most :data:`MAX_RECORD_BYTES`
+(a frame with its camera images is about 5 MB), a range image at most
+:data:`MAX_RANGE_IMAGE_PIXELS` pixels of at most :data:`MAX_RANGE_IMAGE_CHANNELS` channels,
+and its zlib stream is inflated no further than such an image can take, so a 2 MB record
+cannot inflate to gigabytes.
 """
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import struct
 import zlib
@@ -25,11 +32,22 @@ import numpy as np
 
 from typ.errors import TypError
 from typ.formats.binfile import read_bin
+from typ.inputs import MiB, open_regular
 from typ.scene import AgentView, Scene
 
 _POLY = 0x82F63B78
 _MASK_DELTA = 0xA282EAD8
 _U32 = 0xFFFFFFFF
+#: a segment is about 1 GB; a file far beyond that is no segment
+MAX_TFRECORD_BYTES = 64 * 1024 * MiB
+#: one Frame, camera images included, is about 5 MB
+MAX_RECORD_BYTES = 64 * MiB
+#: pixels of one range image: the TOP laser's is 64 x 2650 = 169,600; a 128 x 4096 sensor fits
+MAX_RANGE_IMAGE_PIXELS = 1 << 19
+#: channels of a range image (range, intensity, elongation, no-label-zone) or a pixel pose (6)
+MAX_RANGE_IMAGE_CHANNELS = 8
+#: the serialized MatrixFloat of the largest range image: its float32 values plus the shape
+_MAX_MATRIX_BYTES = 4 * MAX_RANGE_IMAGE_PIXELS * MAX_RANGE_IMAGE_CHANNELS + 1024
 
 
 def _byte_table() -> np.ndarray:
@@ -106,14 +124,7 @@ def iter_tfrecord(path: str | os.PathLike) -> Iterator[bytes]:
     1 GB: only the current record is in memory); TypError (file, record index, byte offset) on a
     bad CRC or truncation."""
     p = Path(path)
-    try:
-        f = open(p, "rb")
-    except FileNotFoundError:
-        raise TypError(p, "file", "an existing TFRecord file", "no such file") from None
-    except OSError as exc:
-        raise TypError(p, "file", "a readable TFRecord file", f"{type(exc).__name__}: {exc.strerror}") from None
-    with f:
-        size = os.fstat(f.fileno()).st_size
+    with open_regular(p, "TFRecord file", max_bytes=MAX_TFRECORD_BYTES) as (f, size):
         offset, index = 0, 0
         while offset < size:
             where = f"record {index} at byte offset {offset}"
@@ -127,7 +138,11 @@ def iter_tfrecord(path: str | os.PathLike) -> Iterator[bytes]:
                 raise TypError(p, f"{where}: length crc", f"masked crc32c {masked_crc32c(length_bytes):#010x}",
                                f"{length_crc:#010x} (corrupt header)")
             start = offset + 12
-            if size - start < length + 4:   # checked before reading: a corrupt length is never allocated
+            # checked before reading: a corrupt or hostile length is never allocated
+            if length > MAX_RECORD_BYTES:
+                raise TypError(p, where, f"a record of at most {MAX_RECORD_BYTES // MiB} MiB (a Waymo Frame)",
+                               f"{length} bytes")
+            if size - start < length + 4:
                 raise TypError(p, where, f"{length} payload bytes + 4 crc bytes",
                                f"{size - start} bytes left (truncated file)")
             payload = _read_exactly(f, p, length)
@@ -185,7 +200,8 @@ def iter_waymo_frames(path: str | os.PathLike) -> Iterator[Scene]:
         boxes = np.array([[lb.box.center_x, lb.box.center_y, lb.box.center_z,
                            lb.box.length, lb.box.width, lb.box.height, lb.box.heading]
                           for lb in frame.laser_labels], dtype=np.float64).reshape(-1, 7)
-        labels = tuple(label_pb2.Label.Type.Name(lb.type).removeprefix("TYPE_").lower() for lb in frame.laser_labels)
+        labels = tuple(_enum_name(where, f"laser_labels[{k}].type", label_pb2.Label.Type, lb.type)
+                       .removeprefix("TYPE_").lower() for k, lb in enumerate(frame.laser_labels))
         ids = np.array([_stable_id(lb.id) for lb in frame.laser_labels], dtype=np.int64)
         view = AgentView(agent_id="ego", points=_frame_points(where, frame, pose, dataset_pb2), pose=pose,
                          boxes=boxes, box_labels=labels, box_ids=ids, where=where)
@@ -208,6 +224,13 @@ def read_waymo_kitti_bin(path: str | os.PathLike) -> np.ndarray:
     return np.concatenate([cloud[:, :3], np.tanh(cloud[:, 3:4])], axis=1).astype(np.float32)
 
 
+def _enum_name(where: str, field: str, enum, value: int) -> str:
+    """The name of a proto enum value; a value the enum does not define (proto3 keeps it) is refused."""
+    if value not in enum.values():
+        raise TypError(where, field, f"one of {sorted(enum.keys())}", value)
+    return enum.Name(value)
+
+
 def _stable_id(text: str) -> int:
     return int.from_bytes(hashlib.blake2b(text.encode("utf-8"), digest_size=8).digest(), "little") & (2**63 - 1)
 
@@ -220,16 +243,37 @@ def _transform(where: str, field: str, values) -> np.ndarray:
 
 
 def _matrix_float(where: str, field: str, compressed: bytes, dataset_pb2, dims: int) -> np.ndarray:
-    """zlib-compressed MatrixFloat -> float32 array of its shape (``dims`` axes)."""
+    """zlib-compressed MatrixFloat -> float32 array of its shape (``dims`` axes), inflated no
+    further than the largest range image can take."""
+    inflate = zlib.decompressobj()
     try:
-        mat = dataset_pb2.MatrixFloat.FromString(zlib.decompress(compressed))
-    except Exception as exc:  # zlib.error or protobuf DecodeError
+        raw = inflate.decompress(compressed, _MAX_MATRIX_BYTES)
+    except zlib.error as exc:
+        raise TypError(where, field, "a zlib-compressed MatrixFloat", f"zlib.error: {exc}") from None
+    if inflate.unconsumed_tail:
+        raise TypError(where, field, f"a range image of at most {MAX_RANGE_IMAGE_PIXELS} pixels x "
+                       f"{MAX_RANGE_IMAGE_CHANNELS} channels ({_MAX_MATRIX_BYTES} bytes inflated)",
+                       f"more than {_MAX_MATRIX_BYTES} bytes from {len(compressed)} compressed (a zlib bomb?)")
+    if not inflate.eof:
+        raise TypError(where, field, "a complete zlib stream", f"{len(compressed)} bytes, cut short")
+    try:
+        mat = dataset_pb2.MatrixFloat.FromString(raw)
+    except Exception as exc:  # protobuf's DecodeError has no stable import path across versions
         raise TypError(where, field, "a zlib-compressed MatrixFloat", type(exc).__name__) from None
-    shape = tuple(mat.shape.dims)
-    if len(shape) != dims or np.prod(shape) != len(mat.data):
+    return _shaped(where, field, tuple(mat.shape.dims), mat.data, dims)
+
+
+def _shaped(where: str, field: str, shape: tuple[int, ...], data, dims: int) -> np.ndarray:
+    """A range image's values as float32 of ``shape``: ``dims`` axes, each >= 1, within the size caps,
+    their product (in Python integers: numpy's int64 product of large dims wraps, even to 0) equal
+    to the number of values."""
+    if len(shape) != dims or min(shape, default=0) < 1 or math.prod(shape) != len(data):
         raise TypError(where, field, f"a {dims}-d matrix whose shape matches its data",
-                       f"shape {shape}, {len(mat.data)} values")
-    return np.array(mat.data, dtype=np.float32).reshape(shape)
+                       f"shape {shape}, {len(data)} values")
+    if shape[0] * shape[1] > MAX_RANGE_IMAGE_PIXELS or math.prod(shape[2:]) > MAX_RANGE_IMAGE_CHANNELS:
+        raise TypError(where, field, f"at most {MAX_RANGE_IMAGE_PIXELS} pixels x {MAX_RANGE_IMAGE_CHANNELS} channels",
+                       f"shape {shape}")
+    return np.array(data, dtype=np.float32).reshape(shape)
 
 
 def _frame_points(where: str, frame, frame_pose: np.ndarray, dataset_pb2) -> np.ndarray:
@@ -237,15 +281,22 @@ def _frame_points(where: str, frame, frame_pose: np.ndarray, dataset_pb2) -> np.
     lasers = {laser.name: laser for laser in frame.lasers}
     clouds = [np.zeros((0, 4), dtype=np.float32)]
     top = dataset_pb2.LaserName.TOP
-    for calib in sorted(frame.context.laser_calibrations, key=lambda c: c.name):
+    calibrations = sorted(frame.context.laser_calibrations, key=lambda c: c.name)
+    names = [_enum_name(where, "context.laser_calibrations[].name", dataset_pb2.LaserName.Name, c.name)
+             for c in calibrations]
+    if len(set(names)) != len(names):  # one calibration per laser: more would decode its images again
+        raise TypError(where, "context.laser_calibrations", "one calibration per laser", names)
+    for calib, name in zip(calibrations, names):
         laser = lasers.get(calib.name)
         if laser is None:
             continue
-        name = dataset_pb2.LaserName.Name.Name(calib.name)
         pixel_pose = None
         if calib.name == top and laser.ri_return1.range_image_pose_compressed:
-            pixel_pose = _pixel_poses(_matrix_float(where, f"lasers[{name}].ri_return1.range_image_pose_compressed",
-                                                    laser.ri_return1.range_image_pose_compressed, dataset_pb2, 3))
+            field = f"lasers[{name}].ri_return1.range_image_pose_compressed"
+            raw_pose = _matrix_float(where, field, laser.ri_return1.range_image_pose_compressed, dataset_pb2, 3)
+            if raw_pose.shape[2] != 6:
+                raise TypError(where, field, "6 channels [roll, pitch, yaw, x, y, z] per pixel", raw_pose.shape)
+            pixel_pose = _pixel_poses(raw_pose)
         extrinsic = _transform(where, f"laser_calibrations[{name}].extrinsic", calib.extrinsic.transform)
         for ret_name in ("ri_return1", "ri_return2"):
             ret = getattr(laser, ret_name)
@@ -253,11 +304,8 @@ def _frame_points(where: str, frame, frame_pose: np.ndarray, dataset_pb2) -> np.
             if ret.range_image_compressed:
                 image = _matrix_float(where, field, ret.range_image_compressed, dataset_pb2, 3)
             elif len(ret.range_image.data):  # the deprecated uncompressed field
-                dims = tuple(ret.range_image.shape.dims)
-                if len(dims) != 3 or np.prod(dims) != len(ret.range_image.data):
-                    raise TypError(where, f"{field}.range_image", "a 3-d matrix whose shape matches its data",
-                                   f"shape {dims}, {len(ret.range_image.data)} values")
-                image = np.array(ret.range_image.data, dtype=np.float32).reshape(dims)
+                image = _shaped(where, f"{field}.range_image", tuple(ret.range_image.shape.dims),
+                                ret.range_image.data, 3)
             else:
                 continue
             if image.shape[2] < 2:
@@ -276,7 +324,7 @@ def _frame_points(where: str, frame, frame_pose: np.ndarray, dataset_pb2) -> np.
                 inclinations = uniform_inclinations(calib.beam_inclination_min, calib.beam_inclination_max, height)
             if pixel_pose is not None and pixel_pose.shape[:2] != image.shape[:2]:
                 raise TypError(where, f"lasers[{name}].ri_return1.range_image_pose_compressed",
-                               f"shape {image.shape[:2]} + (6,)", pixel_pose.shape)
+                               f"shape {image.shape[:2]} + (6,)", pixel_pose.shape[:2] + (6,))
             clouds.append(range_image_to_points(image, inclinations=inclinations, extrinsic=extrinsic,
                                                 pixel_pose=pixel_pose, frame_pose=frame_pose))
     return np.concatenate(clouds, axis=0)
