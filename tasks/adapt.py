@@ -6,7 +6,10 @@ is shared and frozen, E_tgt/G_tgt stay frozen. A 4-layer discriminator D on x^f 
 views (target is D's real side, source its fake side):
 - D:   L_D = E_tgt[max(0, 1 - D(E_tgt(x)))] + E_src[max(0, 1 + D(E_src(x)))]          (Eq. 8)
 - VQ:  L_vq = L_rec(G_src(Q(E_src(x))), x) - E_src[D(E_src(x))] + ||sg[x^z] - E_src(x)||²  (Eq. 9, 10)
-The losses are plain functions of the networks and a batch (:func:`discriminator_loss`,
+Eq. 9's L_rec and commitment term "follow those in Eq. (1)": they are the target VQ-VAE's terms in
+its units (:meth:`models.vqvae.BEVVQVAE.loss`: the focal loss summed over the voxels per latent
+element, the commitment a mean over latent elements), so they keep Eq. 1's relative weight. The
+losses are plain functions of the networks and a batch (:func:`discriminator_loss`,
 :func:`generator_loss`, :func:`batch_accuracy`).
 Output: ``<out>/source_vq/`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
 ``<out>/discriminator/``, each config.json + model.safetensors (:mod:`tasks.artifacts`). A NaN/Inf loss or a discriminator loss beyond
@@ -23,8 +26,8 @@ import numpy as np
 import torch
 
 from models.discriminator import LatentDiscriminator
-from models.losses import commitment_loss, focal_loss, hinge_d_loss, hinge_g_loss
-from models.vqvae import BEVVQVAE
+from models.losses import commitment_loss, hinge_d_loss, hinge_g_loss
+from models.vqvae import BEVVQVAE, reconstruction_loss
 from tasks.artifacts import save_module
 from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop,
                             seed_everything, steps_for)
@@ -60,7 +63,7 @@ def discriminator_loss(disc: LatentDiscriminator, target_vq: BEVVQVAE, source_vq
 class GeneratorLoss:
     """Eq. 9's terms on a source batch, each a scalar tensor; ``total`` is what E_src, G_src minimise."""
 
-    rec: torch.Tensor     # L_rec of x̂ = G_src(Q_tgt(E_src(x))) against x
+    rec: torch.Tensor     # L_rec of x̂ = G_src(Q_tgt(E_src(x))) against x, in Eq. 1's units
     adv: torch.Tensor     # L_src = -E[D(E_src(x))] (Eq. 10)
     commit: torch.Tensor  # ||sg[x^z] - E_src(x)||²
 
@@ -74,7 +77,7 @@ def generator_loss(disc: LatentDiscriminator, source_vq: BEVVQVAE, x_src: torch.
     """Eq. 9–10 on source views x_src (B, C, H, W); D scores the pre-quantization x^f = E_src(x)."""
     f_src = source_vq.encode_pre_quant(x_src)
     z_q, _, _ = source_vq.quantize(f_src)
-    rec = focal_loss(source_vq.decode_logits(z_q), x_src, gamma=gamma)
+    rec = reconstruction_loss(source_vq.decode_logits(z_q), x_src, f_src, gamma=gamma)
     return GeneratorLoss(rec, hinge_g_loss(disc(f_src)), commitment_loss(f_src, z_q))
 
 

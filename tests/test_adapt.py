@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import torch
 
+from models.losses import focal_loss
 from models.vqvae import BEVVQVAE
 from tasks import adapt
 from tasks.training import TrainingDiverged
@@ -127,6 +128,23 @@ def _source_vq():
 def _source_views_batch():
     torch.manual_seed(1)
     return (torch.rand(2, 4, 32, 32) < 0.15).float()
+
+
+def test_generator_loss_parts_are_eq9_and_eq10_on_the_source_batch():
+    source, x = _source_vq(), _source_views_batch()
+    d = Critic(3.0, 0.2)
+    g = adapt.generator_loss(d, source, x, gamma=2.0)
+    with torch.no_grad():
+        f = source.encode_pre_quant(x)
+        idx = torch.cdist(f.permute(0, 2, 3, 1).reshape(-1, 3), source.codebook).argmin(dim=1)
+        code = source.codebook[idx].reshape(2, 8, 8, 3).permute(0, 3, 1, 2)
+        logits = source.decode_logits(code)  # G_src(Q_tgt(E_src(x)))
+    assert float(g.adv) == pytest.approx(-float(d(f).mean()), rel=1e-6)                 # Eq. 10
+    assert float(g.commit) == pytest.approx(float(((f - code) ** 2).mean()), rel=1e-5)  # ||sg[x^z] - E_src(x)||²
+    # L_rec as in Eq. 1 (models.vqvae): the focal loss summed over M voxels per h·w·c latent elements
+    ratio = (4 * 32 * 32) / (3 * 8 * 8)
+    assert float(g.rec) == pytest.approx(float(focal_loss(logits, x, gamma=2.0)) * ratio, rel=1e-4)
+    assert float(g.total) == pytest.approx(float(g.rec + g.adv + g.commit), rel=1e-6)
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
