@@ -119,10 +119,11 @@ def test_discriminator_accuracy_is_one_for_a_perfect_critic_and_zero_for_its_neg
 
 
 def _source_vq():
-    source = adapt.source_from_target(_target())
-    source(torch.rand(2, 4, 32, 32).round())  # (the EMA codebook is initialised on a first batch)
-    source.freeze_codebook()
-    return source
+    """E_src, G_src as the stage starts them, from a target whose codebook holds codes (k-means on a
+    first batch): an all-zero codebook would quantize every cell to 0 and cut every gradient through Q."""
+    target = _target()
+    target(torch.rand(2, 4, 32, 32).round())
+    return adapt.source_from_target(target)
 
 
 def _source_views_batch():
@@ -164,7 +165,7 @@ def test_generator_steps_with_d_frozen_raise_ds_score_of_source_features(sign):
         opt.step()
     with torch.no_grad():
         after = float(d(source.encode_pre_quant(x)).mean())
-    assert after > before + 0.3  # (it rises by about 0.65 in either case)
+    assert after > before + 0.3  # (it rises by about 0.6 either way)
 
 
 def test_the_commitment_term_pulls_e_src_to_its_code_and_leaves_the_code_alone():
