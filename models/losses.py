@@ -1,4 +1,5 @@
-"""Losses of TYP: the focal reconstruction loss (Eq. 2–3) and the hinge GAN losses (Eq. 8, 10).
+"""Losses of TYP: the focal reconstruction loss (Eq. 2–3), the commitment term (Eq. 1, 9) and the
+hinge GAN losses (Eq. 8, 10).
 
 Everything works on logits, in float32 or wider, so that saturated scores stay finite:
 ``log(x̂) = -softplus(-z)`` and ``log(1 - x̂) = -softplus(z)`` never evaluate ``log(0)``.
@@ -46,3 +47,10 @@ def hinge_d_loss(real_scores: torch.Tensor, fake_scores: torch.Tensor) -> torch.
 def hinge_g_loss(fake_scores: torch.Tensor) -> torch.Tensor:
     """Eq. 10: ``L_src = -E[D(E_src(x))]``, the generator side of the hinge GAN."""
     return -fake_scores.mean()
+
+
+def commitment_loss(latents: torch.Tensor, quantized: torch.Tensor) -> torch.Tensor:
+    """Eq. 1's and Eq. 9's ``||sg[x^z] - E(x)||²``, mean over the latent elements: it pulls the
+    encoder's x^f = ``latents`` towards its code x^z = ``quantized`` and gives the code no gradient
+    (``quantized`` may carry a straight-through gradient to ``latents``: it is cut here too)."""
+    return F.mse_loss(latents, quantized.detach())

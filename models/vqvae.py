@@ -136,10 +136,17 @@ class BEVVQVAE(nn.Module):
     def loss(self, x: torch.Tensor, *, gamma: float) -> tuple[torch.Tensor, VQOutput, dict[str, float]]:
         """Eq. 1 with the focal reconstruction term (Eq. 2–3), divided by the latent size (module doc)."""
         out = self(x)
-        rec = focal_loss(out.logits, x, gamma=gamma) * (x[0].numel() / out.latents[0].numel())
+        rec = reconstruction_loss(out.logits, x, out.latents, gamma=gamma)
         total = rec + out.codebook_loss
         return total, out, {"loss": float(total.detach()), "rec": float(rec.detach()),
                             "codebook": float(out.codebook_loss.detach())}
+
+
+def reconstruction_loss(logits: torch.Tensor, x: torch.Tensor, latents: torch.Tensor, *, gamma: float) -> torch.Tensor:
+    """Eq. 3's L_rec in Eq. 1's units (module doc): the focal loss (Eq. 2) summed over the M voxels
+    of a view and divided by the h·w·c elements of its latent ``latents`` (B, c, h, w), over which
+    the codebook terms are means. Eq. 9 (adaptation) takes the same term."""
+    return focal_loss(logits, x, gamma=gamma) * (x[0].numel() / latents[0].numel())
 
 
 class PooledBoxMap(nn.Module):

@@ -3,9 +3,14 @@
 E_src and G_src start as copies of the target VQ-VAE's E_tgt and G_tgt; the codebook Q_tgt
 is shared and frozen, E_tgt/G_tgt stay frozen. A 4-layer discriminator D on x^f and
 (E_src, G_src) are updated in alternation, each batch holding as many source as target
-views:
+views (target is D's real side, source its fake side):
 - D:   L_D = E_tgt[max(0, 1 - D(E_tgt(x)))] + E_src[max(0, 1 + D(E_src(x)))]          (Eq. 8)
 - VQ:  L_vq = L_rec(G_src(Q(E_src(x))), x) - E_src[D(E_src(x))] + ||sg[x^z] - E_src(x)||²  (Eq. 9, 10)
+Eq. 9's L_rec and commitment term "follow those in Eq. (1)": they are the target VQ-VAE's terms in
+its units (:meth:`models.vqvae.BEVVQVAE.loss`: the focal loss summed over the voxels per latent
+element, the commitment a mean over latent elements), so they keep Eq. 1's relative weight. The
+losses are plain functions of the networks and a batch (:func:`discriminator_loss`,
+:func:`generator_loss`, :func:`batch_accuracy`).
 Output: ``<out>/source_vq/`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
 ``<out>/discriminator/``, each config.json + model.safetensors (:mod:`tasks.artifacts`). A NaN/Inf loss or a discriminator loss beyond
 ``max_disc_loss`` stops the stage before any model file is written.
@@ -13,16 +18,16 @@ Output: ``<out>/source_vq/`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from models.discriminator import LatentDiscriminator
-from models.losses import focal_loss, hinge_d_loss, hinge_g_loss
-from models.vqvae import BEVVQVAE
+from models.losses import commitment_loss, hinge_d_loss, hinge_g_loss
+from models.vqvae import BEVVQVAE, reconstruction_loss
 from tasks.artifacts import save_module
 from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop,
                             seed_everything, steps_for)
@@ -42,6 +47,47 @@ def source_from_target(target: BEVVQVAE) -> BEVVQVAE:
     for p in target.parameters():
         p.requires_grad_(False)
     return source
+
+
+def discriminator_loss(disc: LatentDiscriminator, target_vq: BEVVQVAE, source_vq: BEVVQVAE, x_tgt: torch.Tensor,
+                       x_src: torch.Tensor) -> torch.Tensor:
+    """Eq. 8 on a batch: target views x_tgt (B, C, H, W) through E_tgt are the real side, source
+    views x_src through E_src the fake side. The encoders are constants here: L_D trains D alone."""
+    with torch.no_grad():
+        f_tgt = target_vq.encode_pre_quant(x_tgt)
+        f_src = source_vq.encode_pre_quant(x_src)
+    return hinge_d_loss(disc(f_tgt), disc(f_src))
+
+
+@dataclass
+class GeneratorLoss:
+    """Eq. 9's terms on a source batch, each a scalar tensor; ``total`` is what E_src, G_src minimise."""
+
+    rec: torch.Tensor     # L_rec of x̂ = G_src(Q_tgt(E_src(x))) against x, in Eq. 1's units
+    adv: torch.Tensor     # L_src = -E[D(E_src(x))] (Eq. 10)
+    commit: torch.Tensor  # ||sg[x^z] - E_src(x)||²
+
+    @property
+    def total(self) -> torch.Tensor:
+        return self.rec + self.adv + self.commit
+
+
+def generator_loss(disc: LatentDiscriminator, source_vq: BEVVQVAE, x_src: torch.Tensor, *,
+                   gamma: float) -> GeneratorLoss:
+    """Eq. 9–10 on source views x_src (B, C, H, W); D scores the pre-quantization x^f = E_src(x)."""
+    f_src = source_vq.encode_pre_quant(x_src)
+    z_q, _, _ = source_vq.quantize(f_src)
+    rec = reconstruction_loss(source_vq.decode_logits(z_q), x_src, f_src, gamma=gamma)
+    return GeneratorLoss(rec, hinge_g_loss(disc(f_src)), commitment_loss(f_src, z_q))
+
+
+@torch.no_grad()
+def batch_accuracy(disc: LatentDiscriminator, target_vq: BEVVQVAE, source_vq: BEVVQVAE, x_tgt: torch.Tensor,
+                   x_src: torch.Tensor) -> float:
+    """Share of views D puts on their side of 0: E_tgt(x_tgt) above (real), E_src(x_src) below
+    (fake). 0.5 = features indistinguishable, 1 = D separates them all, 0 = D has them swapped."""
+    correct = torch.cat([disc(target_vq.encode_pre_quant(x_tgt)) > 0, disc(source_vq.encode_pre_quant(x_src)) < 0])
+    return float(correct.float().mean())
 
 
 def _pick(views: ViewSet, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -72,10 +118,7 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
         x_src = source_views.batch(src, flips=src_flips)[0].to(distributed.device())
         x_tgt = target_views.batch(tgt, flips=tgt_flips)[0].to(distributed.device())
         source_vq.train()
-        with torch.no_grad():
-            f_tgt = target_vq.encode_pre_quant(x_tgt)
-            f_src_fixed = source_vq.encode_pre_quant(x_src)
-        d_loss = hinge_d_loss(disc(f_tgt), disc(f_src_fixed))
+        d_loss = discriminator_loss(disc, target_vq, source_vq, x_tgt, x_src)
         opt_d.zero_grad(set_to_none=True)
         d_loss.backward()
         opt_d.step()
@@ -84,18 +127,14 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
             raise TrainingDiverged(f"adapt: step {step}: discriminator loss {d_value:.3g} > "
                                    f"max_disc_loss={cfg.max_disc_loss}; stopped before writing a model")
 
-        f_src = source_vq.encode_pre_quant(x_src)
-        z_q, _, _ = source_vq.quantize(f_src)
-        rec = focal_loss(source_vq.decode_logits(z_q), x_src, gamma=cfg.gamma)
-        adv = hinge_g_loss(disc(f_src))
-        commit = F.mse_loss(f_src, z_q.detach())
-        loss = rec + adv + commit
+        g = generator_loss(disc, source_vq, x_src, gamma=cfg.gamma)
+        loss = g.total
         opt_g.zero_grad(set_to_none=True)
         loss.backward()
         opt_g.step()
         norm = grad_norm(trainable)
-        return {"loss": float(loss.detach()), "rec": float(rec.detach()), "adv": float(adv.detach()),
-                "commit": float(commit.detach()), "disc_loss": d_value, "grad_norm": norm}
+        return {"loss": float(loss.detach()), "rec": float(g.rec.detach()), "adv": float(g.adv.detach()),
+                "commit": float(g.commit.detach()), "disc_loss": d_value, "grad_norm": norm}
 
     with distributed.on_device(source_vq, disc, target_vq):
         run_loop(name="adapt", total_steps=total, step_fn=step_fn,
@@ -150,8 +189,7 @@ def translation_scores(encoder_vq: BEVVQVAE, target_vq: BEVVQVAE, source_views: 
 @torch.no_grad()
 def discriminator_accuracy(disc: LatentDiscriminator, encoder_vq: BEVVQVAE, target_vq: BEVVQVAE,
                            source_views: ViewSet, target_views: ViewSet, *, n: int) -> float:
-    """Share of views D puts on the right side of 0 (0.5 = features indistinguishable)."""
+    """:func:`batch_accuracy` on the first ``n`` views of each set, source views through ``encoder_vq``."""
     src = source_views.batch(np.arange(min(n, len(source_views))))[0]
     tgt = target_views.batch(np.arange(min(n, len(target_views))))[0]
-    correct = torch.cat([disc(target_vq.encode_pre_quant(tgt)) > 0, disc(encoder_vq.encode_pre_quant(src)) < 0])
-    return float(correct.float().mean())
+    return batch_accuracy(disc, target_vq, encoder_vq, tgt, src)

@@ -76,6 +76,43 @@ def test_condition_is_the_normalised_box_latent_and_the_adapter_sees_x_e():
     assert len(seen["adapter"]) == 1 and torch.allclose(seen["adapter"][0], expected_ego)  # once per sample
 
 
+def test_samples_are_decoded_de_standardised_and_x_e_is_standardised_for_the_adapter(monkeypatch):
+    """The UNet works on standardised latents (x^f - mean) / std: with statistics that are not
+    (0, 1), G decodes the sample moved back, z·std + mean, and F_AD gets E(x_e') standardised."""
+    import tasks.pipeline as pipeline_module
+
+    pipe = _pipeline()
+    with torch.no_grad():
+        pipe.unet.latent_mean.copy_(torch.tensor([0.5, -1.0, 2.0, 0.25]).view(1, 4, 1, 1))
+        pipe.unet.latent_std.copy_(torch.tensor([2.0, 0.5, 3.0, 1.5]).view(1, 4, 1, 1))
+    x_e, y_r = _inputs()
+    seen = {}
+    real_sample, decode, adapter_forward = pipeline_module.sample, pipe.x_vqvae.decode_latents, pipe.adapter.forward
+
+    def sample_spy(*args, **kwargs):
+        seen["sample"] = real_sample(*args, **kwargs)
+        return seen["sample"]
+
+    def decode_spy(latents):
+        seen["decoded"] = latents.clone()
+        return decode(latents)
+
+    def adapter_spy(condition):
+        seen["adapter"] = condition.clone()
+        return adapter_forward(condition)
+
+    monkeypatch.setattr(pipeline_module, "sample", sample_spy)
+    pipe.x_vqvae.decode_latents, pipe.adapter.forward = decode_spy, adapter_spy
+    logits = pipe.logits(x_e, y_r, seed=0)
+    mean, std = pipe.unet.latent_mean, pipe.unet.latent_std
+    torch.testing.assert_close(seen["decoded"], seen["sample"] * std + mean)
+    with torch.no_grad():
+        torch.testing.assert_close(logits, decode(seen["sample"] * std + mean))
+        assert not torch.allclose(logits, decode(seen["sample"]))  # (the statistics do matter here)
+        ego = pipe.x_vqvae.encode_pre_quant(torch.from_numpy(x_e))
+    torch.testing.assert_close(seen["adapter"], (ego - mean) / std)
+
+
 def test_adapter_scale_multiplies_every_residual_the_unet_gets():
     pipe = _pipeline()
     with torch.no_grad():

@@ -9,8 +9,8 @@ import torch
 
 from tasks import generate
 from tasks.genscore import BANDS, band_label, cell_distance
-from tasks.selftrain import (TABLE4, training_fields, dummy_ego_tuples, pseudo_references, resim_variant, target_frames, variant_of,
-                             variants_to_run)
+from tasks.selftrain import (TABLE4, dummy_ego_tuples, encode_kinds, pseudo_references, resim_variant, target_frames,
+                             training_fields, variant_of, variants_to_run)
 from tasks.voxel_data import ViewSet
 from typ.config import config_from_dict
 from typ.errors import TypError
@@ -139,3 +139,48 @@ def test_adapter_training_does_not_depend_on_the_global_torch_seed(tmp_path):
     assert all(torch.equal(p, q) for p, q in zip(adapters[0].parameters(), adapters[1].parameters()))
     fresh = stage2.build_adapter(ldm, res_blocks=1, seed=7)  # it did train: the zero convolutions moved
     assert any(not torch.equal(p, q) for p, q in zip(adapters[0].parameters(), fresh.parameters()))
+
+
+class OffsetEncoder(torch.nn.Module):
+    """A stand-in x encoder that marks its latents: the 2x2 average of each channel, plus ``offset``."""
+
+    def __init__(self, offset: float):
+        super().__init__()
+        self.offset = offset
+
+    def encode_pre_quant(self, x):
+        return torch.nn.functional.avg_pool2d(x, 2) + self.offset
+
+
+def test_each_kind_of_tuple_is_encoded_by_its_domains_encoder():
+    """TYP §3.4: source CAV tuples through the adapted E_src (E_tgt when there is no adaptation),
+    pseudo references and dummy egos, both target-domain data, through E_tgt; x_r and x_e' of a
+    tuple through the same encoder."""
+    from models.vqvae import PooledBoxMap
+    from tasks import stage1
+    from tasks.stage2 import Tuples
+
+    rng = np.random.default_rng(0)
+
+    def tuples(n):
+        grids = [(rng.random((n, 4, 8, 8)) < 0.3).astype(np.float32) for _ in range(3)]
+        return Tuples(grids[0], grids[1][:, :1], grids[2], (rng.random((n, 4, 8, 8)) < 0.3).astype(np.float32))
+
+    kinds = {"source": tuples(3), "pseudo": tuples(2), "dummy": tuples(1)}
+    e_src, e_tgt, box = OffsetEncoder(10.0), OffsetEncoder(-10.0), PooledBoxMap(downsample=2)
+    cfg = config_from_dict({"stage1": {"unet": {"block_out_channels": [8, 8], "norm_num_groups": 4,
+                                                 "cross_attention_dim": 8, "attention_head_dim": 4}}})
+    torch.manual_seed(0)
+    ldm = stage1.build(cfg.stage1, 4, 1, 4)
+    for v in (*TABLE4, resim_variant(_cfg().selftrain)):
+        expected = {"source": e_src if v.discriminator else e_tgt, "pseudo": e_tgt, "dummy": e_tgt}
+        parts = encode_kinds(v, kinds, e_src, e_tgt, box, ldm, augment=1)
+        assert len(parts) == 3
+        for part, (kind, t) in zip(parts, kinds.items()):
+            enc = expected[kind]
+            x_r, x_e = torch.from_numpy(t.x_r), torch.from_numpy(t.x_e)
+            torch.testing.assert_close(part.z0, ldm.normalize(enc.encode_pre_quant(x_r)), msg=f"{v.name} {kind}")
+            ego = [ldm.normalize(enc.encode_pre_quant(x_e))]
+            if v.conditions == 2:  # the re-simulated view beside x_e', through the same encoder
+                ego.append(ldm.normalize(enc.encode_pre_quant(torch.from_numpy(t.resim))))
+            torch.testing.assert_close(part.ego, torch.cat(ego, dim=1), msg=f"{v.name} {kind}")

@@ -39,18 +39,51 @@ def test_indices_are_the_argmin_of_the_distances_to_the_codebook(quantizer):
     assert torch.allclose(z_q.permute(0, 2, 3, 1), m.codebook[idx], atol=1e-5)  # x^z is the chosen code
 
 
-def test_eq1_balance_reconstruction_weighs_voxels_per_latent_element():
+#: Eq. 1's codebook terms per quantizer, in units of mean((x^z - E(x))²): "vq" takes both
+#: ||sg[E(x)] - x^z||² and ||sg[x^z] - E(x)||² at weight 1; "ema" replaces the first by its moving
+#: average and keeps the commitment term at weight 1
+CODEBOOK_TERMS = {"vq": 2.0, "ema": 1.0}
+
+
+@pytest.mark.parametrize("quantizer", ["ema", "vq"])
+def test_eq1_balance_reconstruction_weighs_voxels_per_latent_element(quantizer):
     """Eq. 3 sums the focal loss over the M voxels; Eq. 1's codebook terms are squared norms over
     the h·w·c latent elements: the loss is their sum divided by h·w·c."""
-    m = _model("vq")
+    m = _model(quantizer)
     x = (torch.rand(2, 4, 32, 32) < 0.1).float()
+    m(x)  # the EMA codebook is initialised (k-means) on its first batch
+    codes_before = m.codebook.detach().clone()  # the EMA moves its codes after quantizing with them
     loss, out, parts = m.loss(x, gamma=2.0)
     ratio = (4 * 32 * 32) / (3 * 8 * 8)
-    assert parts["rec"] == pytest.approx(float(focal_loss(out.logits, x, gamma=2.0)) * ratio, rel=1e-5)
-    codes = m.codebook[out.indices]
+    assert parts["rec"] == pytest.approx(focal_loss(out.logits, x, gamma=2.0).item() * ratio, rel=1e-5)
+    codes = codes_before[out.indices]
     z = out.latents.permute(0, 2, 3, 1)
-    assert float(out.codebook_loss) == pytest.approx(float(2 * ((codes - z) ** 2).mean()), rel=1e-5)  # both weight 1
+    assert float(out.codebook_loss) == pytest.approx(CODEBOOK_TERMS[quantizer] * float(((codes - z) ** 2).mean()),
+                                                     rel=1e-5)
     assert float(loss) == pytest.approx(parts["rec"] + parts["codebook"], rel=1e-6)
+
+
+@pytest.mark.parametrize("quantizer", ["ema", "vq"])
+def test_eq1_codebook_terms_pull_the_encoder_to_its_code_and_the_code_to_the_encoder(quantizer):
+    """The stop-gradients of Eq. 1: the commitment term ||sg[x^z] - E(x)||² moves only E(x), towards
+    its code, at weight 1; the codebook term ||sg[E(x)] - x^z||² moves only the code ("vq"); the EMA
+    codebook takes no gradient at all."""
+    m = _model(quantizer)
+    m(torch.rand(2, 4, 32, 32).round())
+    codes_before = m.codebook.detach().clone()
+    latents = (torch.randn(2, 3, 8, 8) * 2).requires_grad_(True)
+    _, codebook_loss, idx = m.quantize(latents)
+    codebook_loss.backward()
+    q = codes_before[idx].permute(0, 3, 1, 2)
+    n = latents.numel()
+    assert torch.allclose(latents.grad, 2 * (latents.detach() - q) / n, atol=1e-7)  # weight 1, towards the code
+    if quantizer == "ema":
+        assert not m.codebook.requires_grad
+        return
+    grad = m.codebook.grad  # each used code: 2/n sum over its cells of (code - E(x)), weight 1
+    flat = (codes_before[idx] - latents.detach().permute(0, 2, 3, 1)).reshape(-1, 3)
+    expected = torch.zeros_like(codes_before).index_add_(0, idx.reshape(-1), flat) * 2 / n
+    assert torch.allclose(grad, expected, atol=1e-7) and grad.abs().sum() > 0
 
 
 def test_straight_through_gradient_reaches_the_encoder():
