@@ -22,10 +22,12 @@ from typ.formats.kitti import read_kitti_frame
 from typ.formats.nuscenes import read_nuscenes_frame
 from typ.formats.opv2v import write_scene
 from typ.formats.waymo import iter_waymo_frames
-from typ.io import atomic_path
+from typ.io import atomic_path, write_manifest
 from typ.scene import Scene
 
 FORMATS = ("kitti", "nuscenes", "waymo")
+#: what the manifest of a scenario written here names as its writer (typ.io.write_manifest)
+STAGE = "ingest"
 #: height of the top LiDAR above the vehicle frame's origin (Waymo's is on the ground under
 #: the rear axle; the top LiDAR of its Pacificas sits about 2.2 m up, as the target domain's)
 SENSOR_HEIGHT = {"kitti": 0.0, "nuscenes": 0.0, "waymo": 2.2}
@@ -108,7 +110,8 @@ def to_sensor_frame(scene: Scene, height: float) -> Scene:
 
 def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list[Path]:
     """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml``, frame by frame as
-    the scenario yields them, numbered ``000000``, ``000001``, ... in time order; returns the folders."""
+    the scenario yields them, numbered ``000000``, ``000001``, ... in time order, with its manifest;
+    returns the folders."""
     folders = []
     for scenario in scenarios:
         frames = iter(scenario)
@@ -116,7 +119,7 @@ def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list
         target = root / first.scenario
         frames = _chain(first, frames)
         del first
-        with atomic_path(target) as tmp:
+        with atomic_path(target, stage=STAGE) as tmp:
             tmp.mkdir(parents=True)
             stamps = []
             for scene in frames:
@@ -124,6 +127,7 @@ def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list
                 stamps.append(scene.timestamp)
                 del scene
             _number_in_time_order(tmp, stamps)
+            write_manifest(tmp, STAGE, {"frames": len(stamps)})
         folders.append(target)
     return folders
 
