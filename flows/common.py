@@ -19,7 +19,7 @@ from typing import Callable, Iterator, Sequence
 from tasks.scene_stage import SceneStage
 from typ.config import Config, load_config
 from typ.errors import TypError
-from typ.io import remove_stale_temporaries, temporaries, write_json
+from typ.io import output_lock, remove_stale_temporaries, temporaries, write_json
 from typ.tracking import is_main_process, stage_run
 
 log = logging.getLogger("typ")
@@ -233,7 +233,8 @@ def per_scene_stage(stage: str, cfg: Config, root: Path, spec: SceneStage) -> di
     (:func:`own_stale`); each item runs ``spec.work`` as a Prefect task, except
     those ``spec.unchanged`` settles here (a task costs ~20 ms of orchestration, which was most
     of a no-op stage on a hundred scenes); ``spec.summarize(results)`` gives the stage metrics,
-    written to ``metrics/<stage>.json`` for DVC and logged to MLflow.
+    written to ``metrics/<stage>.json`` for DVC and logged to MLflow. The caller holds the
+    stage's lock on ``spec.out`` (:func:`typ.io.output_lock`): temporaries here are a killed run's.
     """
     with stage_run(stage, cfg, root=root) as run:
         with Timer() as timer:
@@ -322,7 +323,8 @@ def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path("
         return None
     cfg = load_config(root / params)
     spec = importlib.import_module(f"tasks.{stage}").scene_stage(cfg, root)
-    metrics = settle_unchanged(stage, cfg, root, spec)
+    with output_lock(root, stage, spec.out):
+        metrics = settle_unchanged(stage, cfg, root, spec)
     if metrics is not None:
         log.info("%s: every scene unchanged (%s); settled without a Prefect flow run", stage,
                  metrics.get("skipped_unchanged"))

@@ -15,7 +15,7 @@ from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
-from typ.io import atomic_path, fit_name, hash_files, write_manifest, written_by
+from typ.io import atomic_path, fit_name, hash_files, output_lock, write_manifest, written_by
 from typ.viz import save_png
 
 STAGE = "generate"
@@ -56,7 +56,8 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     The frames are first written as single-agent OPV2V scenarios under
     ``<out>/single_agent/<fmt>/``, then generated like the simulator's target split into
     ``<out>/<fmt>/frames/<scenario>/`` (real ego + generated references), skipping scenarios
-    whose inputs, params and models are unchanged.
+    whose inputs, params and models are unchanged. It holds the generate stage's lock on ``out``
+    (:func:`typ.io.output_lock`) while it writes.
     """
     cfg = load_config(root / params)
     block = cfg.generate
@@ -70,8 +71,9 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     generator = load_generator(root, cfg)
     generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
     gset = GenerateSet(dataset=fmt, split="frames", references="vehicles")
-    folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
-    results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
+    with output_lock(root, STAGE, out):
+        folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
+        results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
     return stage.summarize(results)
 
 

@@ -2,7 +2,8 @@
 
 typ deletes or replaces only what it can prove it wrote: a folder holding the manifest
 (``_typ.json``) of the stage that replaces it, a typ voxel file, a checkpoint folder of typ's.
-Anything else in an output folder is left alone and counted in the stage's metrics.
+Anything else in an output folder is left alone and counted in the stage's metrics. One run of
+a stage at a time per output (a lock the second run is refused by, naming the holder's pid).
 ``typ edit`` never writes over its own input, keeps symlinks as links, and the CLI names a path
 that is in the way (a file where a folder goes, a name too long) instead of a traceback.
 """
@@ -12,6 +13,9 @@ import contextlib
 import json
 import os
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -325,3 +329,93 @@ def test_a_new_training_run_removes_only_checkpoint_folders_typ_wrote(tmp_path):
     assert run_checkpoint_dir(root, "fedcba9876543210") == root / "fedcba9876543210"
     assert sorted(p.name for p in root.iterdir()) == ["notes", "readme.md"]
     assert (root / "notes" / "step_00000001.pt.txt").read_text() == "mine"
+
+
+# --- class 4: one run of a stage at a time per output --------------------------------------------------
+
+#: ``typ run simulate`` whose scenario, once written to its temporary folder, waits for a file
+HELD_RUN = """
+import sys, time
+from pathlib import Path
+import tasks.simulate as simulate
+root, started, release = (Path(a) for a in sys.argv[1:4])
+write = simulate.ScenarioJob.write
+def write_then_wait(self, tmp):
+    counts = write(self, tmp)
+    started.write_text(str(tmp))
+    deadline = time.monotonic() + 300
+    while not release.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return counts
+simulate.ScenarioJob.write = write_then_wait
+from cli.main import main
+sys.exit(main(["--root", str(root), "run", "simulate"]))
+"""
+
+
+def test_a_second_run_of_a_stage_is_refused_while_the_first_runs(tmp_path, request, tmp_path_factory):
+    from test_crash_safety import make_project, stage_env
+
+    env = stage_env(request.config, tmp_path_factory)
+    zero = {"train": 0, "test": 0}
+    root = make_project(tmp_path / "project", {
+        "profile": "tiny", "simulate": {"frames": 1, "agents_min": 1, "agents_max": 1, "workers": 1,
+                                        "scenarios": {"source": zero, "real_cav": zero,
+                                                      "target": {"train": 1, "val": 0, "test": 0, "pretrain": 0}}}})
+    started, release = tmp_path / "started", tmp_path / "release"
+    first = subprocess.Popen([sys.executable, "-c", HELD_RUN, str(root), str(started), str(release)], cwd=root,
+                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not started.exists() and first.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert started.exists(), first.communicate()[0][-3000:]
+        in_flight = Path(started.read_text())
+        second = subprocess.run([sys.executable, "-m", "cli", "--root", str(root), "run", "simulate"], cwd=root,
+                                env=env, capture_output=True, text=True, timeout=300)
+        assert second.returncode == 2, second.stderr[-3000:]
+        assert "typ: error" in second.stderr and "simulate" in second.stderr and f"pid {first.pid}" in second.stderr
+        assert in_flight.is_dir() and any(in_flight.rglob("*.pcd")), "the second run touched the first's temporary"
+        release.write_text("")
+        assert first.wait(300) == 0, first.communicate()[0][-3000:]
+    finally:
+        release.write_text("")
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    from typ.formats.opv2v import read_scene
+
+    assert len(read_scene(root / "data" / "sim" / "target" / "train" / "target_train_0000", "000000").ego.points)
+
+
+HOLDER = """
+import sys, time
+from pathlib import Path
+from typ.io import output_lock
+with output_lock(Path(sys.argv[1]), "voxelize", Path(sys.argv[2])):
+    print("held", flush=True)
+    time.sleep(300)
+"""
+
+
+def test_the_lock_of_a_killed_run_is_released(tmp_path):
+    from typ.io import OutputBusy, output_lock
+
+    out = tmp_path / "data" / "voxels"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(tmp_path), str(out)], env=env,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(OutputBusy, match=f"voxelize.*pid {holder.pid}"):
+            with output_lock(tmp_path, "voxelize", out):
+                pass
+        with output_lock(tmp_path, "voxelize", tmp_path / "elsewhere"):   # another output: not locked
+            pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with output_lock(tmp_path, "voxelize", out):    # the kernel dropped the dead holder's lock
+        with pytest.raises(OutputBusy):             # and a second holder in this process waits its turn
+            with output_lock(tmp_path, "voxelize", out):
+                pass

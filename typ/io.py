@@ -6,16 +6,20 @@ a final name, and a failed stage leaves the previous outputs intact.
 
 typ replaces or deletes a folder only when it can prove it wrote it: every folder it puts in
 place holds a manifest naming the stage that wrote it (:func:`write_manifest`,
-:func:`written_by`). A user's folder in an output folder is left alone.
+:func:`written_by`). A user's folder in an output folder is left alone. One run of a stage
+at a time writes an output (:func:`output_lock`): a run deletes the temporaries a killed run
+left, and another's would be in flight.
 """
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import os
 import re
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -149,6 +153,39 @@ def _check_replaceable(final: Path, made: Path, stage: str | None) -> None:
                        "a folder typ did not write" if final.is_dir() else "a file")
 
 
+class OutputBusy(TypError):
+    """Another run of the stage holds the lock on the same output (:func:`output_lock`)."""
+
+
+@contextlib.contextmanager
+def output_lock(root: str | os.PathLike, stage: str, out: str | os.PathLike) -> Iterator[None]:
+    """Hold ``stage``'s lock on its output folder ``out`` for the block; a second run, in this
+    process or another, is refused at once with :class:`OutputBusy` naming the holder's pid.
+
+    The lock is an flock on ``<root>/.typ/locks/<stage>-<digest of out>.lock``: the kernel drops
+    it when its holder ends, by SIGKILL too, so a crash never leaves the output locked. The file
+    holds the holder's pid and command, for the message; it is not deleted (a lock file removed
+    while another process waits on it would let a third one in).
+    """
+    target = Path(out).resolve()
+    locks = Path(root) / ".typ" / "locks"
+    locks.mkdir(parents=True, exist_ok=True)
+    path = locks / f"{stage}-{hashlib.sha256(str(target).encode()).hexdigest()[:16]}.lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+            raise OutputBusy(target, "lock", f"no other run of stage {stage} writing this output: wait for it to "
+                             f"end, or stop it", f"held by {holder} ({path})") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)[:400]}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
@@ -191,7 +228,7 @@ def temporaries(root: str | os.PathLike) -> Iterator[Path]:
 
 def remove_stale_temporaries(root: str | os.PathLike) -> int:
     """Delete the temporaries a killed run left under ``root`` (:func:`temporaries`: named as typ names
-    them); returns how many."""
+    them; hold the stage's :func:`output_lock`, or another run's may be in flight); returns how many."""
     removed: list[Path] = []
     for p in sorted(temporaries(root)):  # a folder before what it holds, which goes with it
         if any(folder in p.parents for folder in removed):
