@@ -17,6 +17,7 @@ from pathlib import Path
 from typ.config import Config
 from typ.errors import TypError
 from typ.hashcache import ENV as HASH_CACHE_ENV
+from typ.io import check_folder
 
 STAGES = Config.STAGES
 #: loggers of typ's own code (typ.*, tasks.*), included in Prefect's logging by :func:`_setup_env`
@@ -217,6 +218,7 @@ def _cmd_generate(args) -> int:
     if args.format not in FORMATS:
         raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", args.format)
     root = Path(args.root)
+    check_folder(args.out, where="typ generate", field="--out")
     _setup_env(root)
     from flows.generate import generate_external
 
@@ -231,6 +233,7 @@ def _cmd_show(args) -> int:
     from tasks.show import ShowOptions, show
     from typ import viz
 
+    check_folder(args.out, where="typ show", field="--out")
     root = Path(args.root)
     params = root / args.params
     if params.is_file():
@@ -280,6 +283,7 @@ def _cmd_edit(args) -> int:
         x, y, yaw, *lwh = _numbers(spec, "--add", (3, 6))
         add.append((x, y, float(np.radians(yaw)), *lwh))
     edit = BoxEdit(remove=tuple(args.remove), move=move, add=tuple(add))
+    check_folder(args.out, where="typ edit", field="--out")
     root = Path(args.root)
     _setup_env(root)
     from flows.generate import edit_scenario
@@ -367,7 +371,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="move box ID by dx, dy metres (and dyaw degrees) in the sensor frame")
     p.add_argument("--add", action="append", default=[], metavar="x,y,yaw[,l,w,h]",
                    help="add a car at x, y (m) with heading yaw (degrees), default size 4.5x1.85x1.5 m")
-    p.add_argument("--out", required=True, help="folder the edited copy of the scenario is written to")
+    p.add_argument("--out", required=True, help="folder the edited copy of the scenario is written to, as "
+                                                "OUT/<scenario>: not the folder holding the scenario (the copy "
+                                                "would replace it); an earlier edit's copy there is replaced")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(fn=_cmd_edit)
     return parser

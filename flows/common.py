@@ -19,7 +19,7 @@ from typing import Callable, Iterator, Sequence
 from tasks.scene_stage import SceneStage
 from typ.config import Config, load_config
 from typ.errors import TypError
-from typ.io import TMP_PREFIX, remove_stale_temporaries, write_json
+from typ.io import output_lock, remove_stale_temporaries, temporaries, write_json
 from typ.tracking import is_main_process, stage_run
 
 log = logging.getLogger("typ")
@@ -229,34 +229,63 @@ def per_scene_stage(stage: str, cfg: Config, root: Path, spec: SceneStage) -> di
     """The shape every per-scene stage shares, inside one MLflow run.
 
     Remove temporaries a killed run left under ``spec.out``; ``spec.plan()`` gives the items to
-    do and the stale outputs to delete; each item runs ``spec.work`` as a Prefect task, except
+    do and the stale outputs, of which those the stage wrote are deleted and the others kept
+    (:func:`own_stale`); each item runs ``spec.work`` as a Prefect task, except
     those ``spec.unchanged`` settles here (a task costs ~20 ms of orchestration, which was most
     of a no-op stage on a hundred scenes); ``spec.summarize(results)`` gives the stage metrics,
-    written to ``metrics/<stage>.json`` for DVC and logged to MLflow.
+    written to ``metrics/<stage>.json`` for DVC and logged to MLflow. The caller holds the
+    stage's lock on ``spec.out`` (:func:`typ.io.output_lock`): temporaries here are a killed run's.
     """
     with stage_run(stage, cfg, root=root) as run:
         with Timer() as timer:
             cleaned = remove_stale_temporaries(spec.out) if spec.out.exists() else 0
             items, stale = spec.plan()
-            for path in stale:
+            own, kept = own_stale(stage, spec, stale)
+            for path in own:
                 log.info("%s: removing %s: its input is gone", stage, path)
                 shutil.rmtree(path) if path.is_dir() else path.unlink()
+                _remove_empty_parents(path, spec.out)
             settled = {i: r for i, item in enumerate(items)
                        if spec.unchanged is not None and (r := spec.unchanged(item, **spec.work_kwargs)) is not None}
             todo = [item for i, item in enumerate(items) if i not in settled]
             ran = iter(per_scene(spec.work, todo, label=spec.label, stage=stage, retries=IO_RETRIES,
                                  **spec.work_kwargs) if todo else [])
             results = [settled[i] if i in settled else next(ran) for i in range(len(items))]
-        return _finish_scenes(stage, run, spec, results, root, removed_stale=len(stale), removed_temporaries=cleaned,
-                              seconds_total=round(timer.seconds, 3))
+        return _finish_scenes(stage, run, spec, results, root, removed_stale=len(own), removed_temporaries=cleaned,
+                              kept_not_written_by_typ=len(kept), seconds_total=round(timer.seconds, 3))
+
+
+def own_stale(stage: str, spec: SceneStage, stale: list[Path]) -> tuple[list[Path], list[Path]]:
+    """``stale`` split into what the stage wrote (``spec.owned``: to delete) and the rest, which
+    typ did not write and leaves alone (a warning names them: a user's files where the stage's
+    outputs go)."""
+    own, kept = [], []
+    for path in stale:
+        (own if spec.owned(path) else kept).append(path)
+    if kept:
+        log.warning("%s: left alone %d path(s) under %s that the stage did not write: %s%s", stage, len(kept),
+                    spec.out, ", ".join(str(p) for p in kept[:5]), " ..." if len(kept) > 5 else "")
+    return own, kept
+
+
+def _remove_empty_parents(path: Path, top: Path) -> None:
+    """Remove the folders between ``path`` and ``top`` that deleting ``path`` left empty."""
+    for parent in path.parents:
+        if parent == top or top not in parent.parents:
+            return
+        try:
+            parent.rmdir()
+        except OSError:  # not empty: it holds something else
+            return
 
 
 def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> dict | None:
     """A per-scene stage with nothing to do, settled without Prefect: its metrics, or None.
 
-    When ``spec.out`` holds no temporaries, no output is stale and ``spec.unchanged`` settles
-    every item, the stage's MLflow run is logged as :func:`per_scene_stage` would log it (the
-    same metrics, ``metrics/<stage>.json``, the skip reasons at INFO), tagged ``typ.prefect`` =
+    When ``spec.out`` holds no temporaries, no output the stage wrote is stale and
+    ``spec.unchanged`` settles every item, the stage's MLflow run is logged as
+    :func:`per_scene_stage` would log it (the same metrics, ``metrics/<stage>.json``, the skip
+    reasons at INFO), tagged ``typ.prefect`` =
     ``not started: every scene unchanged``, and the metrics are returned. Otherwise nothing is
     touched and None is returned, at the first item with work: the caller runs the stage's flow,
     which checks again. This is what lets ``typ run <stage>`` with nothing to do skip importing
@@ -265,10 +294,11 @@ def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> d
     if spec.unchanged is None:
         return None
     with Timer() as timer:
-        if spec.out.exists() and next(spec.out.rglob(TMP_PREFIX + "*"), None) is not None:
+        if spec.out.exists() and next(temporaries(spec.out), None) is not None:
             return None
         items, stale = spec.plan()
-        if stale:
+        own, kept = own_stale(stage, spec, stale)
+        if own:
             return None
         results = []
         for item in items:
@@ -277,7 +307,7 @@ def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> d
             results.append(r)
     with stage_run(stage, cfg, root=root, tags={"typ.prefect": "not started: every scene unchanged"}) as run:
         return _finish_scenes(stage, run, spec, results, root, removed_stale=0, removed_temporaries=0,
-                              seconds_total=round(timer.seconds, 3))
+                              kept_not_written_by_typ=len(kept), seconds_total=round(timer.seconds, 3))
 
 
 #: per-scene stages whose ``tasks.<stage>.scene_stage`` needs neither torch nor a trained model,
@@ -293,7 +323,8 @@ def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path("
         return None
     cfg = load_config(root / params)
     spec = importlib.import_module(f"tasks.{stage}").scene_stage(cfg, root)
-    metrics = settle_unchanged(stage, cfg, root, spec)
+    with output_lock(root, stage, spec.out):
+        metrics = settle_unchanged(stage, cfg, root, spec)
     if metrics is not None:
         log.info("%s: every scene unchanged (%s); settled without a Prefect flow run", stage,
                  metrics.get("skipped_unchanged"))

@@ -2,21 +2,20 @@
 from __future__ import annotations
 
 import dataclasses
-import shutil
 from pathlib import Path
 
 from prefect import flow
 
 from flows.common import per_scene_stage
 from tasks import generate as stage
-from tasks.edit import edit_figure, edit_view
+from tasks.edit import STAGE as EDIT, copy_scenario, edit_figure, edit_target, edit_view
 from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
 from tasks.pipeline import TYPPipeline
 from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
-from typ.io import atomic_path, hash_files
+from typ.io import atomic_path, fit_name, hash_files, output_lock, write_manifest, written_by
 from typ.viz import save_png
 
 STAGE = "generate"
@@ -42,22 +41,10 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
     out = root_path / block.out
     generator = load_generator(root_path, cfg)
 
-    def plan():
-        items, stale = [], []
-        for gset in block.sets:
-            folders = list_scenarios(root_path / block.input / gset.dataset / gset.split)
-            items += [(gset, f) for f in folders]
-            wanted = {f.name for f in folders}
-            stale += [p for p in (out / gset.dataset / gset.split).glob("*")
-                      if p.is_dir() and not p.name.startswith(".") and p.name not in wanted]
-        # a (dataset, split) dropped from generate.sets: its generated scenarios go too
-        kept = {(g.dataset, g.split) for g in block.sets}
-        stale += [p for p in out.glob("*/*") if p.is_dir() and not p.name.startswith(".")
-                  and (p.parent.name, p.name) not in kept]
-        return items, stale
-
     return per_scene_stage(STAGE, cfg, root_path, SceneStage(
-        out=out, plan=plan, work=stage.run_scenario, work_kwargs={"cfg": block, "generator": generator, "out": out},
+        out=out, plan=lambda: stage.plan(block, root_path / block.input, out),
+        owned=lambda path: written_by(path, STAGE), work=stage.run_scenario,
+        work_kwargs={"cfg": block, "generator": generator, "out": out},
         label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize,
         unchanged=stage.unchanged))
 
@@ -69,7 +56,8 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     The frames are first written as single-agent OPV2V scenarios under
     ``<out>/single_agent/<fmt>/``, then generated like the simulator's target split into
     ``<out>/<fmt>/frames/<scenario>/`` (real ego + generated references), skipping scenarios
-    whose inputs, params and models are unchanged.
+    whose inputs, params and models are unchanged. It holds the generate stage's lock on ``out``
+    (:func:`typ.io.output_lock`) while it writes.
     """
     cfg = load_config(root / params)
     block = cfg.generate
@@ -82,9 +70,10 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     block = dataclasses.replace(block, compose="generated")
     generator = load_generator(root, cfg)
     generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
-    folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
     gset = GenerateSet(dataset=fmt, split="frames", references="vehicles")
-    results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
+    with output_lock(root, STAGE, out):
+        folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
+        results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
     return stage.summarize(results)
 
 
@@ -95,10 +84,15 @@ def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path
     Returns (the copy, the PNG).
 
     dataset: whose LiDAR took the scenario (its ``voxelize.mount_height``); by default the name
-    of the folder two levels up (``<dataset>/<split>/<scenario>``), else the target domain."""
+    of the folder two levels up (``<dataset>/<split>/<scenario>``), else the target domain.
+
+    The copy replaces only an earlier ``typ edit`` copy (its manifest says so); an ``out`` where
+    the copy would be, hold or lie inside ``scenario`` is refused (:func:`tasks.edit.edit_target`)."""
+    scenario = scenario.resolve()
+    target = edit_target(scenario, out)
     cfg = load_config(root / params)
     if dataset is None:
-        guess = scenario.resolve().parent.parent.name
+        guess = scenario.parent.parent.name
         dataset = guess if guess in cfg.voxelize.mount_height else cfg.stage1.dataset
     generator = load_generator(root, cfg)
     grid = generator.grid(dataset)
@@ -108,11 +102,12 @@ def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path
         raise TypError(scenario, "--agent", f"one of {agents}", agent)
     scene = read_scene(scenario, timestamp, agents=[agent])
     result = edit_view(scene.agents[agent], edit, generator, grid, seed)
-    target = out / scenario.name
-    with atomic_path(target) as tmp:
-        shutil.copytree(scenario, tmp, ignore=shutil.ignore_patterns("_*", ".*"))
+    with atomic_path(target, stage=EDIT) as tmp:
+        copy_scenario(scenario, tmp)
         write_scene(dataclasses.replace(scene, scenario=tmp.name, agents={agent: result.view}), tmp)
+        write_manifest(tmp, EDIT, {"source": str(scenario), "timestamp": timestamp, "agent": agent, "seed": seed,
+                                   "edit": dataclasses.asdict(edit)})
     render = save_png(edit_figure(scene.agents[agent], result, grid,
                                   title=f"typ edit: {scenario.name} {timestamp} agent {agent}"),
-                      out / f"{scenario.name}_{timestamp}_{agent}_edit.png")
+                      target.parent / fit_name(f"{scenario.name}_{timestamp}_{agent}_edit.png"))
     return target, render

@@ -12,7 +12,8 @@ from prefect import flow
 from flows.common import api_for_workers, runner
 from typ.config import Config, load_config
 from typ.errors import TypError
-from typ.tracking import PARENT_ENV, stage_run
+from typ.io import output_lock
+from typ.tracking import PARENT_ENV, is_main_process, stage_run
 
 
 def _flow(stage: str) -> Callable:
@@ -58,7 +59,8 @@ def served_project_only(params: str, root: str) -> None:
 
 def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_runner: str = "thread",
               address: str | None = None) -> dict:
-    """Run one stage's flow; per-scene stages fan out on ``task_runner`` (thread | dask)."""
+    """Run one stage's flow holding its lock on its output (:func:`typ.io.output_lock`: a second
+    run is refused); per-scene stages fan out on ``task_runner`` (thread | dask)."""
     cfg = load_config(Path(root) / params)
     block = cfg.block(stage)
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and stage not in TRAINING:  # under torchrun
@@ -68,7 +70,9 @@ def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_
     if stage not in PER_SCENE:  # training stages call their tasks in turn: one thread
         task_runner, address = "thread", None
     fl = fl.with_options(task_runner=runner(getattr(block, "workers", 1), task_runner, address))
-    with api_for_workers() if task_runner == "dask" else contextlib.nullcontext():
+    # one run per output; under torchrun rank 0 holds the lock for the ranks, which write nothing
+    with output_lock(root, stage, Path(root) / block.out) if is_main_process() else contextlib.nullcontext(), \
+            api_for_workers() if task_runner == "dask" else contextlib.nullcontext():
         return fl(params=params, root=root)
 
 

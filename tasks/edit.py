@@ -9,7 +9,10 @@ are, so an edit changes what it names and nothing else.
 from __future__ import annotations
 
 import dataclasses
+import os
+import shutil
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +24,8 @@ from typ.voxel import Grid, box_map, voxelize
 
 #: metres around an edited box whose cells are regenerated too (shadows and box slack)
 FOOTPRINT_MARGIN = 1.0
+#: what the manifest of an edited copy names as its writer (typ.io.write_manifest)
+STAGE = "edit"
 
 
 @dataclass(frozen=True)
@@ -136,3 +141,41 @@ def _in_cells(points: np.ndarray, cells: np.ndarray, grid: Grid) -> np.ndarray:
     out = np.zeros(len(points), dtype=bool)
     out[ok] = cells[ij[ok, 0], ij[ok, 1]]
     return out
+
+
+def edit_target(scenario: Path, out: Path) -> Path:
+    """``out/<scenario's name>``, the edited copy of ``scenario`` (both resolved: ``typ edit .`` is
+    the folder's own name). TypError when the copy would be the input, hold it or lie inside it:
+    writing it would replace or grow what it copies."""
+    scenario, out = Path(scenario).resolve(), Path(out).resolve()
+    target = out / scenario.name
+    if target == scenario or scenario in target.parents or target in scenario.parents:
+        raise TypError("typ edit", "--out", f"a folder that is not the scenario {scenario}, nor inside it, nor the "
+                       f"folder holding it (the copy {target} would replace or grow its input)", str(out))
+    return target
+
+
+def copy_scenario(source: Path, dest: Path) -> None:
+    """Copy the scenario folder ``source`` to ``dest``, leaving out typ's own files (``_*``) and
+    hidden ones. Symlinks are copied as links and never followed, so a link loop copies as one
+    link: a relative link that stays inside ``source`` keeps its target (it names the copy's
+    file), any other names what it named (an absolute path). Other special files are skipped."""
+    for folder, dirs, files in os.walk(source):  # links to folders come in dirs and are not walked
+        here = Path(folder)
+        into = dest / here.relative_to(source)
+        into.mkdir(parents=True, exist_ok=True)
+        dirs[:] = [d for d in dirs if not d.startswith(("_", "."))]
+        for name in (n for n in dirs + files if not n.startswith(("_", "."))):
+            path = here / name
+            if path.is_symlink():
+                os.symlink(_link_target(path, source), into / name)
+            elif path.is_file():
+                shutil.copy2(path, into / name)
+
+
+def _link_target(link: Path, top: Path) -> str:
+    target = os.readlink(link)
+    named = os.path.normpath(os.path.join(link.parent, target))
+    if not os.path.isabs(target) and (named == str(top) or named.startswith(str(top) + os.sep)):
+        return target
+    return named

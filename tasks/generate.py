@@ -23,12 +23,13 @@ import numpy as np
 from tasks.pipeline import TYPPipeline
 from typ.config import GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
-from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene
+from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
-from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_json
+from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_manifest
 from typ.scene import AgentView, Scene, vehicle_mask
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
+STAGE = "generate"
 MANIFEST = SCENARIO_MANIFEST
 #: why a reference view or a scenario was not generated, counted per stage run
 SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_without_candidate_vehicle",
@@ -208,6 +209,28 @@ def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, digest: s
                      "models": digest, "grid": grid.to_dict()})
 
 
+def plan(cfg: GenerateConfig, source: Path, out: Path) -> tuple[list[tuple[GenerateSet, Path]], list[Path]]:
+    """The scenarios to generate, ``(set, folder)`` for each scenario under ``source/<dataset>/<split>``
+    of ``cfg.sets``, and the stale outputs: what lies where generated scenarios go that the plan
+    does not make (its input is gone, its set was dropped from ``cfg.sets``, someone else's)."""
+    items, stale = [], []
+    for gset in cfg.sets:
+        folders = list_scenarios(source / gset.dataset / gset.split)
+        items += [(gset, f) for f in folders]
+        wanted = {f.name for f in folders}
+        stale += [p for p in _visible(out / gset.dataset / gset.split) if p.name not in wanted]
+    sets = {(g.dataset, g.split) for g in cfg.sets}
+    for dropped in (p for p in out.glob("*/*") if p.is_dir() and (p.parent.name, p.name) not in sets
+                    and not p.name.startswith(".") and not p.parent.name.startswith(".")):
+        stale += _visible(dropped)
+    return items, stale
+
+
+def _visible(folder: Path) -> list[Path]:
+    """What ``folder`` holds, sorted, without hidden names (temporaries, the watched run's params)."""
+    return sorted(p for p in folder.glob("*") if not p.name.startswith("."))
+
+
 def new_skip_counts() -> dict[str, int]:
     return {k: 0 for k in SKIP_REASONS}
 
@@ -268,7 +291,7 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
     clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose)
                   if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
-    with atomic_path(target) as tmp:
+    with atomic_path(target, stage=STAGE) as tmp:
         tmp.mkdir(parents=True)
         for scene, refs in frames:
             views = {scene.ego.agent_id: scene.ego}  # the real ego; cavs: the real CAVs are replaced
@@ -279,7 +302,7 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
                                                 where=f"generated:{folder.name}/{ref.agent_id}/{scene.timestamp}")
             # write_scene writes into a folder named like the scenario: name it after tmp
             write_scene(dataclasses.replace(scene, scenario=tmp.name, agents=views), tmp)
-        write_json(tmp / MANIFEST, {"key": key, "counts": counts, "references": gset.references, "compose": cfg.compose,
+        write_manifest(tmp, STAGE, {"key": key, "counts": counts, "references": gset.references, "compose": cfg.compose,
                                     "generated_agents": sorted({r.agent_id for _, refs in frames for r in refs})})
     return {**base, "skipped": None, "seconds": time.perf_counter() - t0, **counts}
 

@@ -22,11 +22,13 @@ from typ.formats.kitti import read_kitti_frame
 from typ.formats.nuscenes import read_nuscenes_frame
 from typ.formats.opv2v import write_scene
 from typ.formats.waymo import iter_waymo_frames
-from typ.io import atomic_path
+from typ.io import atomic_path, write_manifest
 from typ.scene import Scene
 from typ.sensors import resolve
 
 FORMATS = ("kitti", "nuscenes", "waymo")
+#: what the manifest of a scenario written here names as its writer (typ.io.write_manifest)
+STAGE = "ingest"
 #: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
 #: voxel grid's z is relative to it): its preset's, with the source (typ.sensors.presets)
 MOUNT_HEIGHT = {fmt: resolve(fmt).mount_height for fmt in FORMATS}
@@ -110,7 +112,8 @@ def to_sensor_frame(scene: Scene, height: float) -> Scene:
 
 def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list[Path]:
     """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml``, frame by frame as
-    the scenario yields them, numbered ``000000``, ``000001``, ... in time order; returns the folders."""
+    the scenario yields them, numbered ``000000``, ``000001``, ... in time order, with its manifest;
+    returns the folders."""
     folders = []
     for scenario in scenarios:
         frames = iter(scenario)
@@ -118,7 +121,7 @@ def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list
         target = root / first.scenario
         frames = _chain(first, frames)
         del first
-        with atomic_path(target) as tmp:
+        with atomic_path(target, stage=STAGE) as tmp:
             tmp.mkdir(parents=True)
             stamps = []
             for scene in frames:
@@ -126,6 +129,7 @@ def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list
                 stamps.append(scene.timestamp)
                 del scene
             _number_in_time_order(tmp, stamps)
+            write_manifest(tmp, STAGE, {"frames": len(stamps)})
         folders.append(target)
     return folders
 

@@ -37,7 +37,7 @@ from typ.config import GenerateSet
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene
 from typ.geometry import invert
-from typ.io import read_json_or_none
+from typ.io import fit_name, read_json_or_none
 from typ.metrics.truth import chamfer_distance, occupancy_iou
 from typ.resim import resimulate
 from typ.scene import AgentView, Scene
@@ -109,7 +109,10 @@ def show(path: Path, out: Path, opts: ShowOptions, timestamp: str | None = None)
 def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) -> list[Path]:
     scene = read_scene(folder, timestamp)
     generated, references = generated_agents(folder)  # a bad manifest stops the scenario before any PNG
-    prefix = f"{folder.name}_{timestamp}"
+
+    def png(what: str) -> Path:  # a long scenario name is shortened to fit NAME_MAX, not refused
+        return out / fit_name(f"{folder.name}_{timestamp}_{what}.png")
+
     sim_folder = simulated_counterpart(folder, opts)
     job = scenario_job(sim_folder) if sim_folder is not None else None
     spec = sensor_of(folder, opts, job)
@@ -119,22 +122,22 @@ def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) ->
         panel = agent_panel(scene, agent_id, opts)
         panels.append(panel)
         written.append(viz.save_png(viz.panels_figure([panel], colorbar_z=_colorbar(view, opts)),
-                                    out / f"{prefix}_{agent_id}.png"))
+                                    png(agent_id)))
         if spec is not None:
             written.append(viz.save_png(viz.range_figure(view.points, spec, title=f"{folder.name} {timestamp} "
-                                                         f"agent {agent_id}"), out / f"{prefix}_{agent_id}_range.png"))
+                                                         f"agent {agent_id}"), png(f"{agent_id}_range")))
     title = f"{folder.name}  {timestamp}  ({len(scene.agents)} agents, first = ego)"
     colorbar = None if opts.color == "class" and all(v.semantics is not None for v in scene.agents.values()) \
         else opts.grid.z_range
     written.append(viz.save_png(viz.panels_figure(panels, title=title, colorbar_z=colorbar),
-                                out / f"{prefix}_agents.png"))
+                                png("agents")))
     for agent_id in generated:
         if agent_id not in scene.agents:
             continue
         sample = generated_sample(scene, agent_id, references=references,
                                   sim_folder=sim_folder, job=job, spec=spec, opts=opts)
         written.append(viz.save_png(viz.sample_figure(sample, opts.grid, window=opts.window),
-                                    out / f"{prefix}_{agent_id}_sample.png"))
+                                    png(f"{agent_id}_sample")))
     return written
 
 

@@ -30,7 +30,8 @@ from tasks.scene_stage import SceneStage
 from typ.config import Config, SimulateConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
-from typ.io import SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_json
+from typ.io import (SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_manifest,
+                    written_by)
 import typ.formats.opv2v
 import typ.formats.pcd
 import typ.geometry
@@ -39,6 +40,7 @@ from typ.sim import simulate_scenario
 from typ.ssc import occupancy_path, scene_occupancy, write_occupancy
 import typ.ssc
 
+STAGE = "simulate"
 MANIFEST = SCENARIO_MANIFEST
 #: the simulator's and the writer's source: a change to either redoes every scenario
 _CODE = code_digest(typ.sim, typ.geometry, typ.formats.opv2v, typ.formats.pcd, typ.ssc)
@@ -187,9 +189,10 @@ def _real_jobs(cfg: SimulateConfig, domain: str, data_root: Path, out: Path | No
 
 
 def stale_scenarios(jobs: list, out: Path) -> list[Path]:
-    """Scenario folders on disk that no job produces any more (a split shrank)."""
+    """What lies where scenario folders go (``<out>/<domain>/<split>/``) that no job produces (a
+    split shrank, or someone else's files): the stage deletes those it wrote."""
     wanted = {job.folder(out) for job in jobs}
-    return sorted(p for p in out.glob("*/*/*") if p.is_dir() and p not in wanted and not p.name.startswith("."))
+    return sorted(p for p in out.glob("*/*/*") if p not in wanted and not p.name.startswith("."))
 
 
 def _job_state(job: ScenarioJob | ImportJob, out: Path) -> tuple[Path, str, dict, dict | None]:
@@ -213,11 +216,10 @@ def run_job(job: ScenarioJob | ImportJob, out: Path) -> dict:
     if done is not None:
         return done
     t0 = time.perf_counter()
-    with atomic_path(folder) as tmp:
+    with atomic_path(folder, stage=STAGE) as tmp:
         tmp.mkdir(parents=True)
         counts = job.write(tmp)
-        write_json(tmp / MANIFEST, {"key": key, "job": job.describe(), "counts": counts,
-                                    "typ_version": __version__})
+        write_manifest(tmp, STAGE, {"key": key, "job": job.describe(), "counts": counts, "typ_version": __version__})
     return {**base, "skipped": None, "seconds": time.perf_counter() - t0, **counts}
 
 
@@ -245,6 +247,6 @@ def scene_stage(cfg: Config, root: Path) -> SceneStage:
     the stage's run starts or writes anything."""
     out = root / cfg.simulate.out
     jobs = plan_jobs(cfg.simulate, root=root, out=out, where=cfg.source)
-    return SceneStage(out=out, plan=lambda: (jobs, stale_scenarios(jobs, out)), work=run_job,
-                      work_kwargs={"out": out}, label=lambda job: job.name, summarize=summarize,
-                      unchanged=unchanged)
+    return SceneStage(out=out, plan=lambda: (jobs, stale_scenarios(jobs, out)),
+                      owned=lambda path: written_by(path, STAGE), work=run_job, work_kwargs={"out": out},
+                      label=lambda job: job.name, summarize=summarize, unchanged=unchanged)

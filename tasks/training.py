@@ -31,7 +31,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from typ import distributed
 from typ.errors import TypError
-from typ.io import write_bytes
+from typ.io import is_temporary, write_bytes
 
 CKPT = re.compile(r"^step_(\d{8})\.pt$")
 
@@ -70,11 +70,19 @@ def save_checkpoint(directory: Path, step: int, state: dict, *, keep: int = 2) -
 
 def run_checkpoint_dir(root: Path, key: str) -> Path:
     """``root/key``: where this run's checkpoints go. Checkpoints of other keys (another config or
-    other data) are removed, so a resume only ever continues the same run."""
+    other data) are removed, so a resume only ever continues the same run: the folders beside it
+    that hold nothing but checkpoints and temporaries, as typ writes them; anything else is kept."""
     for old in root.glob("*"):
-        if old.name != key:
+        if old.name != key and _checkpoints_only(old):
             shutil.rmtree(old, ignore_errors=True)
     return root / key
+
+
+def _checkpoints_only(folder: Path) -> bool:
+    """A folder (not a link) of checkpoint files (:data:`CKPT`) and typ's temporaries only."""
+    if folder.is_symlink() or not folder.is_dir():
+        return False
+    return all(p.is_file() and not p.is_symlink() and (CKPT.match(p.name) or is_temporary(p)) for p in folder.iterdir())
 
 
 def save_torch(path: Path, obj: dict) -> None:

@@ -24,7 +24,7 @@ import typ.formats.opv2v
 import typ.store
 import typ.voxel
 from typ.io import code_digest, hash_files
-from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels
+from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels, written_by_store
 from typ.voxel import Grid, box_map, voxelize
 
 log = logging.getLogger(__name__)
@@ -147,6 +147,7 @@ def scene_stage(cfg: Config, root: Path) -> SceneStage:
         items = plan_inputs(source)
         return items, stale_outputs(items, out)
 
-    return SceneStage(out=out, plan=plan, work=run_scene, work_kwargs={"cfg": cfg.voxelize, "out": out},
+    return SceneStage(out=out, plan=plan, owned=written_by_store, work=run_scene,
+                      work_kwargs={"cfg": cfg.voxelize, "out": out},
                       label=lambda item: item.name, summarize=lambda results: summarize(results, grid),
                       unchanged=unchanged)

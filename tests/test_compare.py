@@ -78,6 +78,21 @@ def test_compare_two_pipeline_runs_writes_report_and_plots(store):
         _nontrivial_png(out / name)
 
 
+def test_a_new_report_replaces_only_the_plots_of_the_earlier_one(store):
+    """Issue 42: the plots an earlier report of the name linked go; a user's file that only looks
+    like one (the same name prefix) stays."""
+    tmp_path, uri, a, b = store
+    out = tmp_path / "reports" / "again"
+    compare([a, b], out=out, name="again", tracking_uri=uri)
+    (out / "again_vqvae_curves.png").rename(out / "again_gone_curves.png")   # a stage no longer compared
+    report = out / "again.md"
+    report.write_text(report.read_text().replace("(again_vqvae_curves.png)", "(again_gone_curves.png)"))
+    (out / "again_my_sketch.png").write_bytes(b"a user's picture")
+    compare([a, b], out=out, name="again", tracking_uri=uri)
+    assert (out / "again_my_sketch.png").read_bytes() == b"a user's picture"
+    assert not (out / "again_gone_curves.png").exists() and (out / "again_vqvae_curves.png").exists()
+
+
 def test_compare_cli_resolves_experiment_and_dvc_experiments(store, monkeypatch, capsys):
     tmp_path, uri, a, b = store
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)

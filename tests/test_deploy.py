@@ -224,7 +224,8 @@ def _scene_unchanged(scene: str, *, out) -> dict | None:
 def _probe_stage(items, tmp_path):
     from tasks.scene_stage import SceneStage
 
-    return SceneStage(out=tmp_path / "out", plan=lambda: (items, []), work=_scene_work, work_kwargs={"out": tmp_path},
+    return SceneStage(out=tmp_path / "out", plan=lambda: (items, []), owned=lambda path: True, work=_scene_work,
+                      work_kwargs={"out": tmp_path},
                       label=str, summarize=lambda rs: {"order": [r["scenario"] for r in rs],
                                                        "ran": sum(r["skipped"] is None for r in rs)},
                       unchanged=_scene_unchanged)

@@ -3,7 +3,8 @@ import os
 
 import pytest
 
-from typ.io import atomic_path, hash_files, hash_obj, remove_stale_temporaries, write_bytes, write_json
+from typ.errors import TypError
+from typ.io import atomic_path, hash_files, hash_obj, remove_stale_temporaries, write_bytes, write_json, write_manifest
 
 
 def test_file_appears_only_when_complete(tmp_path):
@@ -29,23 +30,37 @@ def test_failed_rewrite_keeps_previous_output(tmp_path):
 
 def test_directory_swap(tmp_path):
     target = tmp_path / "scene"
-    with atomic_path(target) as tmp:
+    with atomic_path(target, stage="simulate") as tmp:
         tmp.mkdir()
         (tmp / "x.txt").write_text("one")
-    with atomic_path(target) as tmp:
+        write_manifest(tmp, "simulate", {"n": 1})
+    with atomic_path(target, stage="simulate") as tmp:
         tmp.mkdir()
         (tmp / "y.txt").write_text("two")
-    assert sorted(p.name for p in target.iterdir()) == ["y.txt"]
+        write_manifest(tmp, "simulate", {"n": 2})
+    assert sorted(p.name for p in target.iterdir()) == ["_typ.json", "y.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+    # another stage's folder, or one without a manifest, is not replaced
+    for stage in ("generate", "simulate"):
+        with pytest.raises(TypError, match="typ did not write"):
+            with atomic_path(target, stage=stage) as tmp:
+                tmp.mkdir()
+                write_manifest(tmp, stage, {})
+                if stage == "simulate":
+                    (target / "_typ.json").unlink()
+    assert sorted(p.name for p in target.iterdir()) == ["y.txt"] and [p.name for p in tmp_path.iterdir()] == ["scene"]
 
 
 def test_stale_temporaries_are_removed(tmp_path):
     (tmp_path / ".tmp-a.bin.123").write_bytes(b"x")
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / ".tmp-dir.9").mkdir()
+    (tmp_path / "sub" / ".tmp-scene.k2_x9abz").mkdir()
+    (tmp_path / "sub" / ".tmp-scene.k2_x9abz" / ".tmp-a.pcd.12345678").write_bytes(b"x")
+    (tmp_path / "sub" / ".tmp-notes").write_text("a user's, not named as typ names its temporaries")
     write_bytes(tmp_path / "keep.bin", b"y")
-    assert remove_stale_temporaries(tmp_path) == 2
-    assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep.bin", "sub"]
+    assert remove_stale_temporaries(tmp_path) == 3
+    assert sorted(p.name for p in tmp_path.rglob("*")) == [".tmp-notes", "keep.bin", "sub"]
 
 
 def test_hashes_change_with_content_and_are_stable(tmp_path):

@@ -497,12 +497,28 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-")[:80] or "compare"
 
 
+#: the first line of every report, which tells one typ wrote from a file of the same name
+REPORT_TITLE = "# typ compare: "
+
+
+def earlier_plots(report: Path) -> list[Path]:
+    """The plots beside ``report`` that it links, when it is a report ``typ compare`` wrote: what a
+    new report of that name replaces. Other files in the folder are not typ's to delete."""
+    try:
+        text = report.read_text(encoding="utf-8") if report.is_file() else ""
+    except (OSError, UnicodeDecodeError):
+        return []
+    if not text.startswith(REPORT_TITLE):
+        return []
+    return [report.parent / png for png in re.findall(r"^!\[[^\]]*\]\(([^/()]+\.png)\)$", text, flags=re.M)]
+
+
 def write_report(client, sets: list[RunSet], out: Path, name: str) -> Path:
     labels = [s.label for s in sets]
     data = gather(client, sets)
-    for old in out.glob(f"{_slug(name)}_*.png"):  # plots of an earlier report of this name
-        old.unlink()
-    lines = [f"# typ compare: {name}", "",
+    for old in earlier_plots(out / f"{_slug(name)}.md"):
+        old.unlink(missing_ok=True)
+    lines = [f"{REPORT_TITLE}{name}", "",
              "Written by `typ compare` from the MLflow store; plots are beside this file.", ""]
     rows = []
     for rs in sets:

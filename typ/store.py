@@ -236,6 +236,16 @@ def stored_input_hash(path: str | os.PathLike) -> str | None:
     return _metadata(path, _read_schema(path))[1]
 
 
+def written_by_store(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a scene file typ.store wrote (its footer names the format, of any
+    version): what the voxelize stage may delete."""
+    try:
+        raw = (_read_schema(Path(path)).metadata or {}).get(METADATA_KEY)
+        return raw is not None and json.loads(raw).get("format") == FORMAT
+    except (TypError, ValueError, UnicodeDecodeError, AttributeError):
+        return False
+
+
 def stored_grid(path: str | os.PathLike) -> Grid:
     """The grid a scene file was written on (footer only)."""
     path = Path(path)

@@ -1,0 +1,421 @@
+"""Nothing a user owns is deleted (issue 42, classes 1-5 and 14).
+
+typ deletes or replaces only what it can prove it wrote: a folder holding the manifest
+(``_typ.json``) of the stage that replaces it, a typ voxel file, a checkpoint folder of typ's.
+Anything else in an output folder is left alone and counted in the stage's metrics. One run of
+a stage at a time per output (a lock the second run is refused by, naming the holder's pid).
+``typ edit`` never writes over its own input, keeps symlinks as links, and the CLI names a path
+that is in the way (a file where a folder goes, a name too long) instead of a traceback.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from typ.errors import TypError
+from typ.voxel import Grid
+
+REPO = Path(__file__).resolve().parents[1]
+KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_object_vis"
+GRID = Grid((-51.2, 51.2), (-51.2, 51.2), (-3.0, 1.0), (64, 64, 8))
+
+
+def snapshot(folder: Path) -> dict[str, bytes | str | None]:
+    """Every path under ``folder``: a file's bytes, a link's target, None for a folder."""
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        rel = str(p.relative_to(folder))
+        out[rel] = f"-> {os.readlink(p)}" if p.is_symlink() else p.read_bytes() if p.is_file() else None
+    return out
+
+
+class _GroundPipe:
+    """Stands in for the trained diffusion model: ground everywhere, a car in every box of y_r."""
+
+    conditions = 0
+    grid = GRID
+
+    def occupancy(self, x_e, y_r, *, seed, resim=None):
+        occ = np.zeros((len(y_r), GRID.shape[2], *GRID.shape[:2]), dtype=bool)
+        occ[:, 0] = True
+        occ[:, 1:4] |= y_r[:, :1].astype(bool)
+        return occ
+
+    def points(self, occupancy, grid, seed):
+        from tasks.pipeline import PointStats, occupancy_to_points
+
+        return occupancy_to_points(occupancy, grid, PointStats.single(), np.random.default_rng(seed))
+
+
+def write_scenario(parent: Path, name: str = "scen") -> Path:
+    """A one-agent OPV2V-layout scenario ``parent/name`` with a car (id 5) and a manifest of its own."""
+    from typ.formats.opv2v import write_scene
+    from typ.scene import AgentView, Scene
+
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-30, 30, (2000, 2)), np.full(2000, -1.7), np.zeros(2000)].astype(np.float32)
+    view = AgentView("1", points, np.eye(4), np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0]]), ("car",),
+                     np.array([5]))
+    folder = write_scene(Scene(name, "000000", {"1": view}), parent)
+    (folder / "_typ.json").write_text('{"key": "the user\'s", "counts": {}}\n')
+    return folder
+
+
+@pytest.fixture
+def cli(tmp_path, monkeypatch):
+    """``typ ARGS`` in this process on a tiny project whose generator is :class:`_GroundPipe`;
+    returns (exit code, stderr). The environment the CLI sets up is restored afterwards."""
+    import flows.generate
+    from cli.main import main
+    from tasks.generate import Generator
+
+    project = tmp_path / "project"
+    project.mkdir()
+    (project / "params.yaml").write_text("profile: tiny\n")
+    for name in ("PREFECT_HOME", "PREFECT_LOGGING_EXTRA_LOGGERS", "TYP_HASH_CACHE", "PREFECT_LOGGING_LEVEL"):
+        monkeypatch.setenv(name, os.environ.get(name, ""))
+    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "prefect"))
+    monkeypatch.setattr(flows.generate, "load_generator",
+                        lambda root, cfg: Generator(_GroundPipe(), dict(cfg.voxelize.mount_height), digest=""))
+
+    def run(*argv: str) -> int:
+        return main(["--root", str(project), *argv])
+
+    return run
+
+
+EDIT = ("--timestamp", "000000", "--remove", "5")
+
+
+# --- class 1 and 2: typ edit never replaces what it did not write, nor its input ----------------
+
+def test_edit_of_dot_from_inside_a_scenario_keeps_what_out_holds(cli, tmp_path, monkeypatch, capsys):
+    scenario = write_scenario(tmp_path / "data")
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "thesis.tex").write_text("years of work")
+    monkeypatch.chdir(scenario)
+    assert cli("edit", ".", *EDIT, "--out", str(out)) == 0, capsys.readouterr().err
+    assert (out / "thesis.tex").read_text() == "years of work"
+    from typ.formats.opv2v import read_scene
+
+    edited = read_scene(out / "scen", "000000").ego
+    assert list(edited.box_ids) == [] and len(edited.points) > 0
+    # a second edit replaces the first: that folder is typ's own (its manifest says so)
+    assert cli("edit", ".", "--timestamp", "000000", "--add", "5,5,0", "--out", str(out)) == 0
+    assert list(read_scene(out / "scen", "000000").ego.box_ids) == [5, 6]
+    assert sorted(p.name for p in out.iterdir()) == ["scen", "scen_000000_1_edit.png", "thesis.tex"]
+
+
+@pytest.mark.parametrize("where", ["parent", "inside", "itself"])
+def test_edit_whose_output_is_or_holds_its_input_is_refused(cli, tmp_path, capsys, where):
+    scenario = write_scenario(tmp_path / "data")
+    out = {"parent": scenario.parent, "inside": scenario / "edits", "itself": scenario}[where]
+    before = snapshot(tmp_path / "data")
+    assert cli("edit", str(scenario), *EDIT, "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert "typ: error" in err and "--out" in err and str(scenario) in err and "Traceback" not in err
+    assert snapshot(tmp_path / "data") == before   # the input and its _typ.json as they were
+
+
+def test_edit_does_not_replace_a_folder_it_did_not_write(cli, tmp_path, capsys):
+    scenario = write_scenario(tmp_path / "data")
+    out = tmp_path / "out"
+    (out / "scen").mkdir(parents=True)
+    (out / "scen" / "notes.txt").write_text("mine")
+    assert cli("edit", str(scenario), *EDIT, "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert "typ: error" in err and str(out / "scen") in err
+    assert snapshot(out) == {"scen": None, "scen/notes.txt": b"mine"}
+
+
+# --- class 5: symlinks are copied as links --------------------------------------------------------
+
+class TookTooLong(Exception):
+    """Not an OSError, which shutil.copytree would collect and carry on after."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    def expire(signum, frame):
+        raise TookTooLong(f"still running after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def test_edit_copies_a_symlink_loop_as_a_link(cli, tmp_path, capsys):
+    scenario = write_scenario(tmp_path / "data")
+    (scenario / "1" / "loop").symlink_to("..")                # loops: 1/loop/1/again/1/loop/...
+    (scenario / "1" / "again").symlink_to("..")
+    (scenario / "calib.txt").write_text("P0: 1 0 0")
+    (scenario / "also.txt").symlink_to("calib.txt")           # a link inside the scenario stays relative
+    shared = tmp_path / "shared.txt"
+    shared.write_text("outside")
+    (scenario / "shared.txt").symlink_to(os.path.relpath(shared, scenario))   # one that points outside
+    out = tmp_path / "out"
+    with time_limit(30):
+        assert cli("edit", str(scenario), *EDIT, "--out", str(out)) == 0, capsys.readouterr().err
+    copy = out / "scen"
+    assert all(os.readlink(copy / "1" / name) == ".." for name in ("loop", "again"))
+    assert os.readlink(copy / "also.txt") == "calib.txt" and (copy / "also.txt").read_text() == "P0: 1 0 0"
+    assert (copy / "shared.txt").is_symlink() and (copy / "shared.txt").read_text() == "outside"
+    assert sum(1 for _ in copy.rglob("*")) < 20
+
+
+# --- class 14: paths in the way ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", ["edit", "show", "generate"])
+def test_out_that_is_a_file_is_named(cli, tmp_path, capsys, command):
+    scenario = write_scenario(tmp_path / "data")
+    blocker = tmp_path / "out.txt"
+    blocker.write_text("a file")
+    argv = {"edit": ("edit", str(scenario), *EDIT),
+            "show": ("show", str(scenario), "--no-resim"),
+            "generate": ("generate", "--format", "kitti", "--input", str(KITTI))}[command]
+    if command == "generate" and not KITTI.is_dir():
+        pytest.skip(f"no KITTI frames at {KITTI}")
+    for out in (blocker, blocker / "sub"):
+        assert cli(*argv, "--out", str(out)) == 2
+        err = capsys.readouterr().err
+        assert "typ: error" in err and "--out" in err and str(blocker) in err and "Traceback" not in err
+    assert blocker.read_text() == "a file"
+
+
+def test_a_long_scenario_name_fits_its_temporary_names(cli, tmp_path, capsys):
+    """A scenario name of 240 bytes is legal; typ's temporary names beside it must still fit NAME_MAX."""
+    from typ.formats.opv2v import read_scene
+
+    name = "s" * 240
+    scenario = write_scenario(tmp_path / "data", name)
+    out = tmp_path / "out"
+    assert cli("edit", str(scenario), *EDIT, "--out", str(out)) == 0, capsys.readouterr().err
+    assert list(read_scene(out / name, "000000").ego.box_ids) == []
+    png = [p for p in out.iterdir() if p.suffix == ".png"]
+    assert len(png) == 1 and len(png[0].name.encode()) <= 255 and png[0].name.endswith("_edit.png")
+    assert cli("show", str(scenario), "--no-resim", "--out", str(tmp_path / "shown")) == 0, capsys.readouterr().err
+    shown = sorted((tmp_path / "shown").iterdir())
+    assert shown and all(len(p.name.encode()) <= 255 and p.suffix == ".png" for p in shown)
+
+
+def test_atomic_path_fits_temporaries_and_names_a_name_too_long(tmp_path):
+    from typ.io import atomic_path, write_text
+
+    longest = tmp_path / ("f" * 255)
+    write_text(longest, "fits")
+    write_text(longest, "fits again")             # replacing it too: the old file's temporary name
+    assert longest.read_text() == "fits again" and [p.name for p in tmp_path.iterdir()] == [longest.name]
+    with pytest.raises(TypError, match="at most 255 bytes"):
+        write_text(tmp_path / ("f" * 256), "too long")
+    with pytest.raises(TypError, match="a folder"):
+        with atomic_path(longest / "x.txt") as tmp:
+            tmp.write_text("under a file")
+    assert [p.name for p in tmp_path.iterdir()] == [longest.name]
+
+
+# --- class 3: a stage deletes only its own stale outputs ---------------------------------------------
+
+def _manifest(folder: Path, **fields) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "000000.pcd").write_bytes(b"points")
+    (folder / "_typ.json").write_text(json.dumps(fields))
+    return folder
+
+
+def _quiet_stage_run(monkeypatch) -> dict:
+    from flows import common
+
+    finished = {}
+    monkeypatch.setattr(common, "stage_run", lambda stage, cfg, root, **kw: contextlib.nullcontext(None))
+    monkeypatch.setattr(common, "finish_stage", lambda stage, run, metrics, root: finished.update(metrics))
+    return finished
+
+
+def test_generate_stage_removes_only_scenarios_it_wrote(tmp_path, monkeypatch):
+    import flows.generate
+
+    params = {"profile": "tiny", "generate": {"input": "in", "out": "gen",
+                                              "sets": [{"dataset": "target", "split": "test", "references": "vehicles"}]}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    (tmp_path / "in" / "target" / "test").mkdir(parents=True)
+    gen = tmp_path / "gen"
+    legacy = {"key": "k", "counts": {"frames": 1}, "generated_agents": ["12"]}   # before stages named themselves
+    _manifest(gen / "target" / "test" / "old", **legacy)
+    _manifest(gen / "target" / "test" / "older", stage="generate", **legacy)
+    _manifest(gen / "gone" / "split" / "old", stage="generate", **legacy)        # a set dropped from generate.sets
+    _manifest(gen / "target" / "test" / "simulated", stage="simulate", key="k", counts={})   # another stage's
+    (gen / "target" / "test" / "photos").mkdir()
+    (gen / "target" / "test" / "photos" / "a.jpg").write_bytes(b"jpeg")
+    (gen / "gone" / "split" / "thesis").mkdir()
+    (gen / "gone" / "split" / "thesis" / "main.tex").write_text("years of work")
+    (gen / "gone" / "notes.txt").write_text("mine")
+    ours = ("target/test/old", "target/test/older", "gone/split/old")
+    mine = {k: v for k, v in snapshot(gen).items() if not any(k == o or k.startswith(o + "/") for o in ours)}
+    monkeypatch.setattr(flows.generate, "load_generator", lambda root, cfg: None)
+    finished = _quiet_stage_run(monkeypatch)
+    metrics = flows.generate.generate_flow.fn(params="params.yaml", root=str(tmp_path))
+    assert {k: v for k, v in snapshot(gen).items() if k in mine} == mine
+    assert not any((gen / o).exists() for o in ours)
+    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (3, 3) and finished == metrics
+
+
+def test_simulate_stage_removes_only_scenarios_it_wrote(tmp_path, monkeypatch):
+    from flows.common import per_scene_stage
+    from tasks import simulate
+    from typ.config import load_config
+
+    zero = {"train": 0, "test": 0}
+    params = {"profile": "tiny", "simulate": {"out": "sim", "scenarios": {
+        "source": zero, "real_cav": zero, "target": {"train": 0, "val": 0, "test": 0, "pretrain": 0}}}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    sim = tmp_path / "sim"
+    _manifest(sim / "target" / "train" / "target_train_0000", key="k", job={}, counts={}, typ_version="0")
+    (sim / "target" / "train" / "my_scan" / "1").mkdir(parents=True)
+    (sim / "target" / "train" / "my_scan" / "1" / "000000.pcd").write_bytes(b"my points")
+    mine = snapshot(sim / "target" / "train" / "my_scan")
+    finished = _quiet_stage_run(monkeypatch)
+    cfg = load_config(tmp_path / "params.yaml")
+    metrics = per_scene_stage("simulate", cfg, tmp_path, simulate.scene_stage(cfg, tmp_path))
+    assert snapshot(sim / "target" / "train" / "my_scan") == mine
+    assert not (sim / "target" / "train" / "target_train_0000").exists()
+    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (1, 1) and finished == metrics
+
+
+def test_voxelize_stage_removes_only_voxel_files_it_wrote(tmp_path, monkeypatch):
+    from flows.common import per_scene_stage
+    from tasks import voxelize
+    from typ.config import load_config
+    from typ.store import scene_path, write_scene_voxels
+
+    params = {"profile": "tiny", "voxelize": {"input": "sim", "out": "vox"}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    (tmp_path / "sim").mkdir()
+    grid = Grid((-8.0, 8.0), (-8.0, 8.0), (-2.0, 2.0), (16, 16, 4))
+    ours = scene_path(tmp_path / "vox", "target", "train", "gone")
+    write_scene_voxels(ours, {("1", "000000"): (np.zeros(grid.shape, bool), np.zeros((*grid.shape[:2], 1), bool))},
+                       grid=grid, input_hash="h")
+    theirs = scene_path(tmp_path / "vox", "target", "train", "mine")
+    theirs.write_bytes(b"PAR1 a parquet file of the user's")
+    finished = _quiet_stage_run(monkeypatch)
+    cfg = load_config(tmp_path / "params.yaml")
+    metrics = per_scene_stage("voxelize", cfg, tmp_path, voxelize.scene_stage(cfg, tmp_path))
+    assert not ours.exists() and theirs.read_bytes() == b"PAR1 a parquet file of the user's"
+    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (1, 1) and finished == metrics
+
+
+def test_a_new_training_run_removes_only_checkpoint_folders_typ_wrote(tmp_path):
+    from tasks.training import run_checkpoint_dir, save_torch
+
+    root = tmp_path / "checkpoints"
+    save_torch(root / "0123456789abcdef" / "step_00000002.pt", {"step": 2})
+    (root / "notes").mkdir(parents=True)
+    (root / "notes" / "step_00000001.pt.txt").write_text("mine")
+    (root / "readme.md").write_text("mine")
+    assert run_checkpoint_dir(root, "fedcba9876543210") == root / "fedcba9876543210"
+    assert sorted(p.name for p in root.iterdir()) == ["notes", "readme.md"]
+    assert (root / "notes" / "step_00000001.pt.txt").read_text() == "mine"
+
+
+# --- class 4: one run of a stage at a time per output --------------------------------------------------
+
+#: ``typ run simulate`` whose scenario, once written to its temporary folder, waits for a file
+HELD_RUN = """
+import sys, time
+from pathlib import Path
+import tasks.simulate as simulate
+root, started, release = (Path(a) for a in sys.argv[1:4])
+write = simulate.ScenarioJob.write
+def write_then_wait(self, tmp):
+    counts = write(self, tmp)
+    started.write_text(str(tmp))
+    deadline = time.monotonic() + 300
+    while not release.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return counts
+simulate.ScenarioJob.write = write_then_wait
+from cli.main import main
+sys.exit(main(["--root", str(root), "run", "simulate"]))
+"""
+
+
+def test_a_second_run_of_a_stage_is_refused_while_the_first_runs(tmp_path, request, tmp_path_factory):
+    from test_crash_safety import make_project, stage_env
+
+    env = stage_env(request.config, tmp_path_factory)
+    zero = {"train": 0, "test": 0}
+    root = make_project(tmp_path / "project", {
+        "profile": "tiny", "simulate": {"frames": 1, "agents_min": 1, "agents_max": 1, "workers": 1,
+                                        "scenarios": {"source": zero, "real_cav": zero,
+                                                      "target": {"train": 1, "val": 0, "test": 0, "pretrain": 0}}}})
+    started, release = tmp_path / "started", tmp_path / "release"
+    first = subprocess.Popen([sys.executable, "-c", HELD_RUN, str(root), str(started), str(release)], cwd=root,
+                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not started.exists() and first.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert started.exists(), first.communicate()[0][-3000:]
+        in_flight = Path(started.read_text())
+        second = subprocess.run([sys.executable, "-m", "cli", "--root", str(root), "run", "simulate"], cwd=root,
+                                env=env, capture_output=True, text=True, timeout=300)
+        assert second.returncode == 2, second.stderr[-3000:]
+        assert "typ: error" in second.stderr and "simulate" in second.stderr and f"pid {first.pid}" in second.stderr
+        assert in_flight.is_dir() and any(in_flight.rglob("*.pcd")), "the second run touched the first's temporary"
+        release.write_text("")
+        assert first.wait(300) == 0, first.communicate()[0][-3000:]
+    finally:
+        release.write_text("")
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    from typ.formats.opv2v import read_scene
+
+    assert len(read_scene(root / "data" / "sim" / "target" / "train" / "target_train_0000", "000000").ego.points)
+
+
+HOLDER = """
+import sys, time
+from pathlib import Path
+from typ.io import output_lock
+with output_lock(Path(sys.argv[1]), "voxelize", Path(sys.argv[2])):
+    print("held", flush=True)
+    time.sleep(300)
+"""
+
+
+def test_the_lock_of_a_killed_run_is_released(tmp_path):
+    from typ.io import OutputBusy, output_lock
+
+    out = tmp_path / "data" / "voxels"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(tmp_path), str(out)], env=env,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(OutputBusy, match=f"voxelize.*pid {holder.pid}"):
+            with output_lock(tmp_path, "voxelize", out):
+                pass
+        with output_lock(tmp_path, "voxelize", tmp_path / "elsewhere"):   # another output: not locked
+            pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with output_lock(tmp_path, "voxelize", out):    # the kernel dropped the dead holder's lock
+        with pytest.raises(OutputBusy):             # and a second holder in this process waits its turn
+            with output_lock(tmp_path, "voxelize", out):
+                pass
