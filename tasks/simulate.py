@@ -24,6 +24,7 @@ import hashlib
 import os
 import shutil
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -192,16 +193,16 @@ def _real_jobs(cfg: SimulateConfig, domain: str, root: Path, out: Path | None, w
         for split, jobs in _source_jobs(block, domain, list(wanted), root / block.root, where,
                                         cfg.source_field(domain, index)).items():
             found.get(split, []).extend(jobs)
-    jobs, names = [], set()
+    twice = [name for name, k in Counter(job.name for jobs in found.values() for job in jobs).items() if k > 1]
+    if twice:   # one scenario in two splits, or two datasets' scenarios of one name
+        raise TypError(where, f"simulate.sources.{domain}", "sources whose scenarios have distinct names",
+                       f"{twice[0]} twice")
+    jobs = []
     for split, n in wanted.items():
         if len(found[split]) < n:
             raise TypError(where, f"simulate.scenarios.{domain}.{split}",
                            f"at most {len(found[split])} (the scenarios its sources give it)", n)
         for job in found[split][:n]:
-            if job.name in names:
-                raise TypError(where, f"simulate.sources.{domain}", "sources whose scenarios have distinct names",
-                               f"{job.name} twice")
-            names.add(job.name)
             manifest = read_json_or_none(job.folder(out) / MANIFEST) if out is not None else None
             if manifest is None or manifest.get("key") != job.key():   # new or changed: check it now
                 job = dataclasses.replace(job, counts=job.check())
