@@ -158,13 +158,14 @@ _IMPORT_CODE = code_digest(typ.formats.opv2v, typ.formats.pcd)
 def plan_jobs(cfg: SimulateConfig, *, root: Path = Path("."), out: Path | None = None,
               where: str = "params.yaml") -> list:
     """All scenarios the config asks for: :class:`ScenarioJob` per simulated scenario, each with its
-    own seed derived from ``cfg.seed``, and :class:`ImportJob` per scenario of a real dataset.
+    own seed derived from ``cfg.seed``, :class:`ImportJob` per scenario of a real OPV2V-layout
+    dataset and :class:`tasks.ingest.IngestJob` per scenario of a KITTI / nuScenes / Waymo one.
 
     A simulated scenario's seed depends only on (seed, domain, split, index), so adding scenarios
     to a split leaves the existing ones byte-identical and DVC/our keys skip them. A real
     dataset's root (relative to ``root``) is checked here, before anything is written: its
-    split folders, and every scenario not already taken unchanged into ``out`` (the first bad
-    file raises TypError naming it; a split asked for more scenarios than it has names ``where``).
+    splits, and every scenario not already taken unchanged into ``out`` (the first bad file
+    raises TypError naming it; a split asked for more scenarios than it has names ``where``).
     """
     jobs = []
     for domain in sorted(cfg.scenarios):

@@ -291,3 +291,88 @@ def test_a_bad_frame_in_any_scenario_stops_the_stage_before_it_writes(tmp_path):
     with pytest.raises(TypError, match="000001.bin: size"):
         scene_stage(load_config(tmp_path / "params.yaml"), tmp_path)
     assert not (tmp_path / "data").exists()
+
+
+# ---------------------------------------------------------------- the stages after, on a real target
+
+
+def _one_agent(folder: Path, sensor: str | None, ground_z: float) -> Scene:
+    """A one-agent scenario: a flat road ``ground_z`` below the LiDAR and a car, written to ``folder``
+    (its yaml naming ``sensor`` when given)."""
+    rng = np.random.default_rng(1)
+    road = np.c_[rng.uniform(-40, 40, (4000, 2)), np.full(4000, ground_z), np.full(4000, 0.3)].astype(np.float32)
+    view = AgentView("ego", road, np.eye(4), np.array([[12.0, 3.0, ground_z + 0.75, 4.0, 1.8, 1.5, 0.2]]),
+                     ("car",), np.array([7]))
+    scene = Scene(folder.name, "000000", {"ego": view})
+    folder.mkdir(parents=True)
+    if sensor is None:
+        from typ.formats.opv2v import write_scene
+
+        write_scene(scene, folder)
+    else:
+        write_frames([scene], folder, sensor=sensor)
+    return scene
+
+
+def test_a_real_frames_grid_sits_at_its_own_lidars_height_in_voxelize_and_generate(tmp_path):
+    from tasks.generate import Generator, _scenario_state
+    from tasks.voxelize import ScenarioInput, _scene_state
+    from typ.config import GenerateSet
+    from typ.voxel import Grid
+
+    cfg = config_from_dict({})
+    for sensor, height in (("kitti", 1.76), ("waymo", 2.184), (None, 2.2)):   # None: the domain's (simulated)
+        folder = tmp_path / "sim" / "target" / "pretrain" / f"s_{sensor}"
+        _one_agent(folder, sensor, -height)
+        _, grid, _, _ = _scene_state(ScenarioInput("target", "pretrain", folder), cfg.voxelize, tmp_path / "vox")
+        assert grid.z_range == pytest.approx((-0.75 - height, 3.25 - height))
+
+        class Pipe:
+            grid = Grid((-51.2, 51.2), (-51.2, 51.2), (-0.75, 3.25), (128, 128, 8))
+
+        generator = Generator(Pipe(), dict(cfg.voxelize.mount_height), digest="")
+        gset = GenerateSet(dataset="target", split="pretrain", references="vehicles")
+        _, grid, _, _, _ = _scenario_state((gset, folder), cfg.generate, generator, tmp_path / "gen")
+        assert grid.z_range == pytest.approx((-0.75 - height, 3.25 - height))
+
+
+def test_selftrain_sees_a_real_frame_from_the_domains_height(tmp_path):
+    from tasks.selftrain import target_frames
+
+    kitti = _one_agent(tmp_path / "train" / "kitti_0", "kitti", -1.76).ego
+    simulated = _one_agent(tmp_path / "train" / "sim_0", None, -2.2).ego
+    lifted, same = target_frames(tmp_path / "train", {"target": 2.2}, "target")
+    assert np.allclose(lifted.points[:, 2], -2.2) and np.allclose(same.points[:, 2], -2.2)   # one ground channel
+    assert np.allclose(lifted.boxes[:, 2], kitti.boxes[:, 2] - 0.44) and np.allclose(same.boxes, simulated.boxes)
+    world = lambda v: v.points[:, :3].astype(np.float64) @ v.pose[:3, :3].T + v.pose[:3, 3]   # noqa: E731
+    assert np.allclose(world(lifted), world(kitti), atol=1e-4)                           # the same road
+    assert [f.points[:, 2].mean() for f in target_frames(tmp_path / "train")] == pytest.approx([-1.76, -2.2])
+
+
+def test_evaluate_says_why_it_cannot_score_single_agent_scenes(tmp_path):
+    from tasks.evaluate import missing_truth
+    from typ.formats.opv2v import write_scene
+
+    scene = _one_agent(tmp_path / "target" / "test" / "kitti_0", "kitti", -1.76)
+    reason = missing_truth(tmp_path / "target" / "test")
+    assert "no scenario of target/test has a second agent" in reason and "no true reference view" in reason
+    other = AgentView("1", scene.ego.points, np.eye(4))
+    write_scene(Scene("pair", "000000", {"0": scene.ego, "1": other}), tmp_path / "target" / "test")
+    assert missing_truth(tmp_path / "target" / "test") is None
+
+
+def test_ddpm_says_why_it_cannot_train_on_scans_without_point_classes(tmp_path):
+    from PIL import Image
+
+    from tasks.ddpm import Scan, unlabelled
+    from tasks.ddpm_report import write_skipped
+
+    labelled = Scan(("s", "0", "000000"), np.zeros((3, 4), np.float32), np.zeros(3, np.uint8))
+    real = Scan(("kitti_0", "ego", "000000"), np.zeros((3, 4), np.float32), None)
+    assert unlabelled([labelled], "target/train") is None
+    reason = unlabelled([labelled, real], "target/train")
+    assert "target/train carry no per-point classes" in reason
+    md, *pngs = write_skipped(tmp_path, reason)
+    assert md.read_text() == f"# LiDAR DDPM\n\nNot run: {reason}.\n"
+    assert [p.name for p in pngs] == ["ddpm_pareto.png", "ddpm_samples.png"]
+    assert all(Image.open(p).size == (700, 160) for p in pngs)
