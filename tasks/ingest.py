@@ -395,7 +395,8 @@ def write_frames(frames: Iterable[Scene], folder: Path, *, sensor: str) -> dict:
 
     def written() -> Iterator[Scene]:
         for scene in frames:
-            write_scene(dataclasses.replace(scene, scenario=folder.name), folder, meta={scene.ego_id: {"sensor": sensor}})
+            write_scene(dataclasses.replace(scene, scenario=folder.name), folder,
+                        meta={scene.ego_id: {"sensor": sensor}})
             stamps.append(scene.timestamp)
             yield scene
 

@@ -5,8 +5,9 @@ Output: ``<out>/<domain>/<split>/<scenario>/<agent_id>/<timestamp>.pcd|.yaml`` (
 the ego is the first agent id in sorted order), beside them the semantic occupancy ground
 truth ``<timestamp>_semantic_occupancy.npz`` of each view of the domains in
 ``simulate.occupancy`` (:mod:`typ.ssc`; real datasets bring their own or none), plus
-``<scenario>/_typ.json``, the scenario's job key. A real dataset's scenarios (the first ``scenarios[domain][split]`` of each split,
-by name, its sources in order) are checked before anything is written (:func:`plan_jobs`:
+``<scenario>/_typ.json``, the scenario's job key. A real dataset's scenarios (the first
+``scenarios[domain][split]`` of each split, by name, its sources in order) are checked before
+anything is written (:func:`plan_jobs`:
 layout, yaml keys, pose format, agents, every frame of a single-agent dataset; the first bad
 file is named). An OPV2V-layout scenario's ``.pcd``/``.yaml`` files are hard-linked into the
 output (copied across file systems); a KITTI / nuScenes / Waymo scenario is written as a
@@ -230,7 +231,8 @@ def split_rules(jobs: list) -> dict:
     for job in jobs:
         if not isinstance(job, ScenarioJob):
             rules.setdefault(job.domain, {}).setdefault(job.split, set()).add(job.rule)
-    return {domain: {split: sorted(r) for split, r in sorted(splits.items())} for domain, splits in sorted(rules.items())}
+    return {domain: {split: sorted(r) for split, r in sorted(splits.items())}
+            for domain, splits in sorted(rules.items())}
 
 
 def stale_scenarios(jobs: list, out: Path) -> list[Path]:

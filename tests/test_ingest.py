@@ -111,8 +111,10 @@ def test_a_datasets_own_splits_map_by_name_and_fractions_share_what_no_list_take
 def test_the_source_block_is_checked_with_the_params():
     for block, field in (({"format": "lyft", "root": "x"}, "simulate.sources.target.format"),
                          ({"format": "kitti", "root": " "}, "simulate.sources.target.root"),
-                         ({"format": "kitti", "root": "x", "splits": {"train": 1.5}}, "simulate.sources.target.splits.train"),
-                         ({"format": "kitti", "root": "x", "splits": {"train": 0.7, "val": 0.4}}, "simulate.sources.target.splits"),
+                         ({"format": "kitti", "root": "x", "splits": {"train": 1.5}},
+                          "simulate.sources.target.splits.train"),
+                         ({"format": "kitti", "root": "x", "splits": {"train": 0.7, "val": 0.4}},
+                          "simulate.sources.target.splits"),
                          ({"format": "opv2v", "root": "x", "splits": {"train": 0.5}}, "simulate.sources.target.splits"),
                          ([{"format": "kitti", "root": "x"}, {"format": "kitti"}], "simulate.sources.target[1].root"),
                          ([], "simulate.sources.target")):
@@ -120,7 +122,7 @@ def test_the_source_block_is_checked_with_the_params():
             config_from_dict(params(block, train=1))
         assert str(info.value).startswith(f"params.yaml: {field}: expected "), str(info.value)
     cfg = config_from_dict(params("relative/opv2v", train=1)).simulate
-    assert [b.format for b in cfg.source_blocks("target")] == ["opv2v"] and cfg.source_root("target") == "relative/opv2v"
+    assert [(b.format, b.root) for b in cfg.source_blocks("target")] == [("opv2v", "relative/opv2v")]
 
 
 # ---------------------------------------------------------------- sequences and streaming
@@ -148,8 +150,9 @@ def _record(name: str, t: float, x: float, scene: str | None) -> dict:
 
 
 def test_a_nuscenes_scene_is_one_scenario_in_time_order_and_a_lone_keyframe_its_own(tmp_path):
-    root = _nuscenes_root(tmp_path / "nuscenes", [_record("b", 1532402928.1, 2.0, "s1"), _record("lone", 1532402930.0, 9.0, None),
-                                                  _record("a", 1532402927.6, 1.0, "s1"), _record("c", 1532402928.6, 3.0, "s1")])
+    root = _nuscenes_root(tmp_path / "nuscenes", [
+        _record("b", 1532402928.1, 2.0, "s1"), _record("lone", 1532402930.0, 9.0, None),
+        _record("a", 1532402927.6, 1.0, "s1"), _record("c", 1532402928.6, 3.0, "s1")])
     scenarios, splits = list_dataset("nuscenes", root)
     assert [s.name for s in scenarios] == ["lone", "nuscenes_s1"] and splits == {"val": ["lone", "nuscenes_s1"]}
     scene = scenarios[1]

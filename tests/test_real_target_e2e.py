@@ -78,9 +78,10 @@ def test_the_real_frames_become_one_agent_scenarios_in_their_lidar_frames(projec
     sim = json.loads((proj / "metrics" / "simulate.json").read_text())
     assert (sim["imported"], sim["simulated"]) == (5, 4)
     target = proj / "data" / "sim" / "target"
-    assert {split: sorted(p.name for p in (target / split).iterdir()) for split in ("train", "val", "test", "pretrain")} \
-        == {"train": ["kitti_training_000001"], "val": ["kitti_training_000000"], "test": ["kitti_testing_000002"],
-            "pretrain": ["n015-2018-07-24-11-22-45_0800__LIDAR_TOP__1532402927647951", "val"]}
+    taken = {split: sorted(p.name for p in (target / split).iterdir()) for split in ("train", "val", "test", "pretrain")}
+    assert taken == {"train": ["kitti_training_000001"], "val": ["kitti_training_000000"],
+                     "test": ["kitti_testing_000002"],
+                     "pretrain": ["n015-2018-07-24-11-22-45_0800__LIDAR_TOP__1532402927647951", "val"]}
     rules = sim["splits"]["target"]
     assert rules["train"] == ["kitti split train"] and rules["test"] == ["kitti split test"]
     assert len(rules["pretrain"]) == 2 and all("sha256(scenario name) in [0, 1)" in r for r in rules["pretrain"])

@@ -223,11 +223,6 @@ class SimulateConfig:
     #: 0.15-0.4 s a view): only the domains that semantic scene completion trains and scores on
     occupancy: tuple[str, ...] = ("real_cav",)
 
-    def source_root(self, domain: str) -> str | None:
-        """The root of ``domain``'s real dataset when it is one plain OPV2V-layout root, else None."""
-        source = self.sources.get(domain, SIMULATE)
-        return None if source == SIMULATE or not isinstance(source, str) else source
-
     def source_blocks(self, domain: str) -> tuple[SourceConfig, ...]:
         """The real datasets ``domain`` is read from, in order (a plain root is an ``opv2v`` block);
         empty when the simulator makes it."""
