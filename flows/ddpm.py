@@ -1,6 +1,7 @@
 """Flow ``ddpm``: LiDAR DDPM on the target domain — feature nets, Table II rows, TYP side by side, report."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import torch
@@ -15,6 +16,7 @@ from typ.config import load_config
 from typ.tracking import stage_run
 
 STAGE = "ddpm"
+LOG = logging.getLogger(__name__)
 
 
 @flow(name=STAGE, log_prints=False, validate_parameters=False)
@@ -27,6 +29,9 @@ def ddpm_flow(params: str = "params.yaml", root: str = ".") -> dict:
     train, test = (plain_task(stage.load_scans, f"scans-{split}")(root_path / block.input, domain=block.domain,
                                                                    split=split, ego_only=block.ego_only)
                    for split in (block.train_split, block.test_split))
+    reason = stage.unlabelled([*train, *test], f"{block.domain}/{block.train_split} and {block.test_split}")
+    if reason is not None:
+        return skipped(cfg, root_path, reason, {"train_scans": len(train), "test_scans": len(test)})
     with stage_run(STAGE, cfg, root=root_path) as run:
         with Timer() as timer:
             nets, feature_scores = plain_task(train_feature_nets, "feature-nets")(
@@ -49,6 +54,20 @@ def ddpm_flow(params: str = "params.yaml", root: str = ".") -> dict:
                                          {"train_scans": len(train), "test_scans": len(test),
                                           "seconds_total": round(timer.seconds, 3)})
         path = write_metrics(STAGE, metrics, root_path)
+        run.metrics(numeric_leaves(metrics))
+        for p in (path, *paths):
+            run.artifact(p)
+    return metrics
+
+
+def skipped(cfg, root: Path, reason: str, counts: dict) -> dict:
+    """The stage's run, metrics and report files when it cannot train on its data: each says why."""
+    LOG.warning("ddpm: not run: %s", reason)
+    with stage_run(STAGE, cfg, root=root) as run:
+        (root / cfg.ddpm.out).mkdir(parents=True, exist_ok=True)
+        paths = ddpm_report.write_skipped(root / cfg.ddpm.reports, reason)
+        metrics = {"skipped": reason, **counts}
+        path = write_metrics(STAGE, metrics, root)
         run.metrics(numeric_leaves(metrics))
         for p in (path, *paths):
             run.artifact(p)

@@ -80,6 +80,15 @@ class Scan:
     semantics: np.ndarray | None
 
 
+def unlabelled(scans: list[Scan], where: str) -> str | None:
+    """Why the stage cannot run on ``scans``, or None: its feature networks (FRID / FPVD) learn the
+    points' classes, which a real dataset's scans (KITTI, nuScenes, Waymo) do not carry."""
+    if any(s.semantics is None for s in scans):
+        return (f"the scans of {where} carry no per-point classes (a real dataset's), which the FRID / FPVD "
+                "feature networks learn; ddpm.domain can name a simulated domain")
+    return None
+
+
 def load_scans(sim_root: Path, *, domain: str, split: str, ego_only: bool) -> list[Scan]:
     """Every (scenario, agent, timestamp) view of ``sim_root/domain/split``, sorted."""
     folder = sim_root / domain / split

@@ -297,6 +297,25 @@ def gallery(examples: dict[str, np.ndarray], path: Path) -> None:
     plt.close(fig)
 
 
+def write_skipped(folder: Path, reason: str) -> list[Path]:
+    """``ddpm.md``, ``ddpm_pareto.png`` and ``ddpm_samples.png`` of a run that could not train: each says why."""
+    import textwrap
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from typ.viz import save_png
+
+    md = write_text(folder / "ddpm.md", f"# LiDAR DDPM\n\nNot run: {reason}.\n") or folder / "ddpm.md"
+    paths = [md]
+    for name in ("ddpm_pareto.png", "ddpm_samples.png"):
+        fig = Figure(figsize=(7, 1.6), dpi=100)
+        FigureCanvasAgg(fig)
+        fig.text(0.5, 0.5, "LiDAR DDPM not run:\n" + textwrap.fill(reason, 90), ha="center", va="center", fontsize=8)
+        paths.append(save_png(fig, folder / name))
+    return paths
+
+
 def write_all(folder: Path, rows: list[dict], examples: dict, *, round_trips: dict, feature_scores: dict,
               context: dict) -> list[Path]:
     """``ddpm.md``, ``ddpm_pareto.png`` and ``ddpm_samples.png`` under ``folder``."""

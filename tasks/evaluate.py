@@ -163,24 +163,12 @@ def gallery_samples(data: "gen.EvalSet", result: dict, n: int) -> list[dict]:
 
 def run(cfg, root: Path, *, run=None) -> EvaluateResult:
     """Score everything the trained artifacts provide; write the reports, plots and gallery."""
-    from tasks import adapt, stage1
-    from tasks.pipeline import TYPPipeline
-    from tasks.selftrain import generator_dir
+    from tasks import adapt
     from tasks.voxel_data import load_views
     from tasks.vqvae import load_model as load_vqvae
-    from typ import plots
-    from typ.sim.sensor import domain_spec
-    from typ.viz import gallery
 
     block = cfg.evaluate
-    reports = root / block.reports
-    grid = cfg.voxelize.sensor_grid(block.target_domain)
-    spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor
     x_vq, y_encoder = load_vqvae(root / block.vqvae / "x"), load_vqvae(root / block.vqvae / "y")
-    generator = TYPPipeline.from_pretrained(generator_dir(root / block.selftrain, cfg.stage1.seed))
-    data = gen.build_eval_set(root / block.sim / block.target_domain / block.target_split, grid, spec,
-                              max_pairs=block.max_pairs or None)
-    result = gen.run(cfg, root, data, x_vq, y_encoder, generator.point_stats, n_boot=block.n_boot)
     # adaptation (TYP Table 4's premise): how target-like source views look through the target decoder
     source_vq = load_vqvae(root / block.adapt / "source_vq", "adapt")
     store = root / block.voxels
@@ -190,15 +178,72 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
                   "after": adapt.translation_scores(source_vq, x_vq, src, tgt)}
     before, after = adaptation["before"]["jsd_r2dm"], adaptation["after"]["jsd_r2dm"]
     adaptation["jsd_change"] = (after - before) / before if before else float("nan")
-    samples = gallery_samples(data, result, block.gallery)
-    gallery_md = gallery(samples, root / GALLERY, grid, link_prefix="gallery/",
-                         title="Generated reference views beside the truth") if samples else ""
     extra = [
         "## Adaptation (source views through the target decoder, TYP §3.4)", "",
         f"JSD of source test views decoded by G_tgt against target test views (r2dm preset): before adaptation "
         f"(E_tgt) {before:.3f}, after (E_src) {after:.3f}: {100 * adaptation['jsd_change']:+.0f} % "
         f"(TYP Table 4: 0.26 -> 0.16, -38 %).", "",
     ]
+    split_root = root / block.sim / block.target_domain / block.target_split
+    reason = missing_truth(split_root)
+    if reason is None:
+        metrics, paths, lines = generation_section(cfg, root, x_vq, y_encoder, extra, run=run)
+    else:
+        LOG.warning("evaluate: generation accuracy not scored: %s", reason)
+        metrics, paths, lines = skipped_generation(root, root / block.reports, reason, extra)
+    metrics["adaptation"] = adaptation
+    fusion_metrics, fusion_paths, fusion_lines = fusion_section(cfg, root)
+    metrics["fusion"] = fusion_metrics
+    summary = "\n".join(["# typ evaluate", "", *lines, "", *fusion_lines])
+    return EvaluateResult(metrics, [*paths, *fusion_paths], summary)
+
+
+def missing_truth(split_root: Path) -> str | None:
+    """Why generated views cannot be scored on the scenarios under ``split_root``, or None: scoring
+    needs the true view of a second agent, which a real single-agent dataset does not have."""
+    from typ.formats.opv2v import list_agents, list_scenarios
+
+    if not any(len(list_agents(folder)) > 1 for folder in list_scenarios(split_root)):
+        return (f"no scenario of {split_root.parent.name}/{split_root.name} has a second agent (single-agent scenes, "
+                "as a real KITTI / nuScenes / Waymo target domain gives): there is no true reference view to score "
+                "against")
+    return None
+
+
+def skipped_generation(root: Path, reports: Path, reason: str, extra: list[str]) -> tuple[dict, list[Path], list[str]]:
+    """The generation section when it cannot be scored: the report says why, the band plot's
+    columns are empty and the gallery folder is empty."""
+    from typ import plots
+
+    line = f"Generation accuracy not scored: {reason}."
+    report = write_text(root / GENERATION_REPORT, "\n".join(
+        ["# Generated reference views against the truth", "", line, "", *extra]) + "\n") or root / GENERATION_REPORT
+    (root / GALLERY).mkdir(parents=True, exist_ok=True)
+    bands = plots.bands(reports / "plots" / "iou_by_band.csv", genscore.BANDS,
+                        {k: [float("nan")] * len(genscore.BANDS) for k in PLOTTED})
+    return {"generation": {}, "generation_skipped": reason}, [report, bands], [line]
+
+
+def generation_section(cfg, root: Path, x_vq, y_encoder, extra: list[str], *, run=None
+                       ) -> tuple[dict, list[Path], list[str]]:
+    """Generation accuracy on the held-out simulated target scenes: metrics, report files, summary lines."""
+    from tasks.pipeline import TYPPipeline
+    from tasks.selftrain import generator_dir
+    from typ import plots
+    from typ.sim.sensor import domain_spec
+    from typ.viz import gallery
+
+    block = cfg.evaluate
+    reports = root / block.reports
+    grid = cfg.voxelize.sensor_grid(block.target_domain)
+    spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor
+    generator = TYPPipeline.from_pretrained(generator_dir(root / block.selftrain, cfg.stage1.seed))
+    data = gen.build_eval_set(root / block.sim / block.target_domain / block.target_split, grid, spec,
+                              max_pairs=block.max_pairs or None)
+    result = gen.run(cfg, root, data, x_vq, y_encoder, generator.point_stats, n_boot=block.n_boot)
+    samples = gallery_samples(data, result, block.gallery)
+    gallery_md = gallery(samples, root / GALLERY, grid, link_prefix="gallery/",
+                         title="Generated reference views beside the truth") if samples else ""
     report = write_generation_report(root / GENERATION_REPORT, result, extra=extra, gallery_md=gallery_md)
     t = result["table"]
     bands = plots.bands(reports / "plots" / "iou_by_band.csv", genscore.BANDS,
@@ -206,8 +251,7 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
                              for b in genscore.BANDS] for k in PLOTTED})
     metrics = {"pairs": result["pairs"], "scenes": result["scenes"], "seeds": result["seeds"],
                "generation": intervals_json(result["table"]), "spread_iou": result["spread_iou"],
-               "seconds_per_view": {k: round(v, 4) for k, v in result["seconds"].items()},
-               "adaptation": adaptation}
+               "seconds_per_view": {k: round(v, 4) for k, v in result["seconds"].items()}}
     if run is not None:
         rows = [{"method": gen.label(k), **{f: round(iv.value, 5) for f, iv in v.items()}}
                 for k, v in result["table"].items()]
@@ -216,12 +260,9 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
 
         for s in samples[:4]:  # the gallery's own PNGs (drawing them again cost 2 s each)
             run.artifact(root / GALLERY / f"{safe_name(s['name'])}.png", "gallery")
-    fusion_metrics, fusion_paths, fusion_lines = fusion_section(cfg, root)
-    metrics["fusion"] = fusion_metrics
-    summary = "\n".join(["# typ evaluate", "", *comparisons(result["table"], [
-        (result["typ"], "naive_copy", "iou"), (result["typ"], "stage1_only", "iou"),
-        (result["resim_key"], "resim", "iou")]), "", *fusion_lines])
-    return EvaluateResult(metrics, [report, bands, *fusion_paths], summary)
+    lines = comparisons(result["table"], [(result["typ"], "naive_copy", "iou"), (result["typ"], "stage1_only", "iou"),
+                                          (result["resim_key"], "resim", "iou")])
+    return metrics, [report, bands], lines
 
 
 def fusion_section(cfg, root: Path) -> tuple[dict, list[Path], list[str]]:

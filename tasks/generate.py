@@ -23,7 +23,7 @@ import numpy as np
 from tasks.pipeline import TYPPipeline
 from typ.config import GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
-from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, write_scene
+from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
 from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_manifest
 from typ.scene import AgentView, Scene, vehicle_mask
@@ -239,7 +239,7 @@ def _scenario_state(item: tuple[GenerateSet, Path], cfg: GenerateConfig, generat
     """(output folder, grid, key, result fields, the skipped result when the stored output has the key)."""
     gset, folder = item
     target = out / gset.dataset / gset.split / folder.name
-    grid = generator.grid(gset.dataset)
+    grid = generator.grid(scenario_sensor(folder) or gset.dataset)
     key = scenario_key(folder, gset, cfg, generator.digest, grid)
     base = {"scenario": f"{gset.dataset}/{gset.split}/{folder.name}", "set": f"{gset.dataset}/{gset.split}"}
     manifest = read_json_or_none(target / MANIFEST)
@@ -337,10 +337,10 @@ class Generator:
     azimuth_step_deg: float = 0.4   #: the simulated sensors' azimuth step (re-simulation casts with it)
 
     def grid(self, dataset: str) -> Grid:
-        if dataset not in self.mount_height:
-            raise TypError("params.yaml", f"voxelize.mount_height.{dataset}",
-                           f"the LiDAR height of dataset {dataset!r} (known: {sorted(self.mount_height)})", "missing")
-        return self.pipe.grid.for_sensor(self.mount_height[dataset])
+        """The generator's grid in the frame of ``dataset``'s LiDAR (a domain or a sensor name)."""
+        from typ.sensors import mount_height
+
+        return self.pipe.grid.for_sensor(mount_height(dataset, self.mount_height))
 
     def sensor(self, dataset: str):
         """The sensor re-simulation casts with in ``dataset``'s reference views (a re-simulation-

@@ -1,30 +1,45 @@
-"""Single-agent frames from KITTI, nuScenes or Waymo as OPV2V-layout scenarios ``generate`` reads.
+"""Single-agent frames from KITTI, nuScenes or Waymo as OPV2V-layout scenarios: what ``typ generate
+--format`` generates from, and a domain ``simulate`` takes from a real dataset (``simulate.sources``).
 
-Each reader gives :class:`typ.scene.Scene` objects with one agent, ``"ego"``; this module
-groups them into scenarios (a Waymo tfrecord is one sequence, read and written one frame at a
-time; a KITTI or nuScenes keyframe stands alone), moves every frame into its LiDAR's sensor
-frame when the dataset reports points in a vehicle frame (Waymo: origin on the ground, so the
-grid's z range, which is relative to the sensor, would miss most points), and writes them with
-:func:`typ.formats.opv2v.write_scene` so that the generation path is the same as for the
-simulator's target split.
+A dataset is listed as :class:`DatasetScenario` s before anything is read: a KITTI frame stands
+alone; a nuScenes scene (the info records sharing a ``scene_token``, in time order) is one
+scenario, a keyframe without one stands alone; a Waymo segment (one tfrecord) is one scenario,
+read and written one frame at a time. Each frame is moved into its LiDAR's sensor frame when
+the dataset reports points in a vehicle frame (Waymo: origin on the ground, so the grid's z
+range, which is relative to the sensor, would miss most points) and written with
+:func:`typ.formats.opv2v.write_scene`, the ego's yaml naming its LiDAR (``sensor: kitti``) so
+that the stages after find the dataset's mount height in :mod:`typ.sensors`.
+
+The dataset's own splits (KITTI ``ImageSets/*.txt`` and ``training``/``testing``; Waymo
+``training``/``validation``/``testing`` folders; nuScenes info files ``*_train``/``*_val``/
+``*_test``) become typ's as ``SourceConfig.splits`` maps them (:func:`assign_splits`); a dataset
+without any is shared out by a hash of each scenario's name (:data:`DEFAULT_FRACTIONS`).
 """
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+import hashlib
+import re
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
 
+from typ.config import SourceConfig
 from typ.errors import TypError
-from typ.formats.kitti import read_kitti_frame
-from typ.formats.nuscenes import read_nuscenes_frame
+from typ.formats.kitti import MAX_TEXT_BYTES, read_kitti_frame
+from typ.formats.nuscenes import read_info, record_frame
 from typ.formats.opv2v import write_scene
 from typ.formats.waymo import iter_waymo_frames
-from typ.io import atomic_path, write_manifest
+from typ.inputs import read_text
+from typ.io import atomic_path, code_digest, hash_files, hash_obj, write_manifest
 from typ.scene import Scene
 from typ.sensors import resolve
+import typ.formats
+import typ.scene
+import typ.sensors.presets
 
 FORMATS = ("kitti", "nuscenes", "waymo")
 #: what the manifest of a scenario written here names as its writer (typ.io.write_manifest)
@@ -37,62 +52,313 @@ MOUNT_HEIGHT = {fmt: resolve(fmt).mount_height for fmt in FORMATS}
 _VEHICLE_FRAME = ("waymo",)
 #: height of the LiDAR above the frame its points come in: 0 where that is the LiDAR's own
 SENSOR_HEIGHT = {fmt: MOUNT_HEIGHT[fmt] if fmt in _VEHICLE_FRAME else 0.0 for fmt in FORMATS}
+#: typ split -> the dataset's split names it takes when ``splits`` is not given, the first found
+SPLIT_NAMES = {"train": ("train", "training"), "val": ("val", "validation"), "test": ("test", "testing"),
+               "pretrain": ("pretrain",)}
+#: a dataset without splits of its own: the fraction of its scenarios each typ split takes
+DEFAULT_FRACTIONS = {"train": 0.7, "val": 0.1, "test": 0.1, "pretrain": 0.1}
+#: what decides how a dataset's frames are read and written: a change redoes every scenario
+_CODE = code_digest(typ.formats, typ.scene, typ.sensors.presets, sys.modules[__name__])
 
 
 @dataclass(frozen=True)
-class WaymoSegment:
-    """One Waymo tfrecord as a scenario: iterating it reads its frames one at a time, in file
-    order, moved to the top LiDAR's frame (a real segment is about 1 GB; no more than a frame
-    is held)."""
+class DatasetScenario:
+    """One scenario of a single-agent dataset before it is read: iterating it reads its frames in
+    time order, each in its LiDAR's sensor frame, one at a time (a Waymo segment is about 1 GB)."""
 
-    path: Path
+    fmt: str
+    name: str
+    #: the files it is read from, in reading order (the scenario's key hashes them)
+    files: tuple[Path, ...]
+    #: kitti: ((root, split folder, frame id),); nuscenes: ((record, categories, bin, info), ...) in
+    #: time order; waymo: ()
+    parts: tuple = field(default=(), compare=False, hash=False)
 
     def __iter__(self) -> Iterator[Scene]:
-        name = _name(self.path)
-        for scene in iter_waymo_frames(self.path):
-            yield dataclasses.replace(to_sensor_frame(scene, SENSOR_HEIGHT["waymo"]), scenario=name)
+        for stamp, scene in enumerate(self._frames()):
+            scene = to_sensor_frame(scene, SENSOR_HEIGHT[self.fmt])
+            # nuScenes and KITTI stamps are not the files' order: number the frames as they come
+            yield dataclasses.replace(scene, scenario=self.name,
+                                      timestamp=scene.timestamp if self.fmt == "waymo" else f"{stamp:06d}")
+
+    def _frames(self) -> Iterator[Scene]:
+        if self.fmt == "kitti":
+            (root, folder, frame), = self.parts
+            yield read_kitti_frame(root, frame, folder)
+        elif self.fmt == "nuscenes":
+            for record, categories, bin_path, info_path in self.parts:
+                yield record_frame(record, categories, bin_path, info_path)
+        else:
+            yield from iter_waymo_frames(self.files[0])
+
+    def key(self) -> str:
+        """A digest of everything the scenario's files hold and how they are read."""
+        records = [part[0] for part in self.parts] if self.fmt == "nuscenes" else []
+        return hash_files(self.files, extra=hash_obj({"name": self.name, "format": self.fmt, "records": records,
+                                                      "code": _CODE}))
 
 
-def read_frames(fmt: str, path: str | Path) -> list[list[Scene] | WaymoSegment]:
-    """Scenarios (iterables of frames) of single-agent data at ``path``: a list of frames per
-    KITTI / nuScenes keyframe, a :class:`WaymoSegment` per Waymo tfrecord.
+def list_dataset(fmt: str, root: str | Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+    """(the scenarios of the ``fmt`` dataset at ``root``, sorted by name; the dataset's own splits,
+    name -> scenario names). Raises TypError for an unknown format, a root that is no folder or
+    holds no frame, a split file naming a frame the root lacks, a nuScenes record whose point
+    cloud is missing, and two scenarios of one name.
 
-    kitti: a KITTI object root holding ``training/`` and/or ``testing/`` (velodyne or
-    velodyne_reduced, label_2, calib); every frame is its own scenario.
-    nuscenes: a folder of ``*.pcd.bin`` keyframes and one mmdet3d ``*_info.json``.
-    waymo: a ``.tfrecord`` file or a folder of them; each file is one scenario.
+    kitti: ``training/`` and ``testing/`` (velodyne or velodyne_reduced, label_2, calib), splits
+    ``training``, ``testing`` and each ``ImageSets/<name>.txt`` (frame ids; ``test`` in testing/).
+    nuscenes: mmdet3d info JSONs (``*info*.json``) beside their point clouds (``lidar_path``
+    relative to the root, or in ``samples/LIDAR_TOP/`` or the root itself); a file named
+    ``*_train``, ``*_val`` or ``*_test`` is that split.
+    waymo: ``*.tfrecord`` segments in the root (no split) and in ``training/``, ``validation/``,
+    ``testing/``.
     """
+    root = Path(root)
+    if fmt not in FORMATS:
+        raise TypError(root, "format", f"one of {list(FORMATS)}", fmt)
+    if not root.is_dir():
+        raise TypError(root, "root", f"a {fmt} dataset folder", "not a folder")
+    scenarios, splits = {"kitti": _kitti, "nuscenes": _nuscenes, "waymo": _waymo}[fmt](root)
+    if not scenarios:
+        raise TypError(root, "root", f"{fmt} frames ({_LAYOUT[fmt]})", "none found")
+    by_name: dict[str, DatasetScenario] = {}
+    for scenario in scenarios:
+        if scenario.name in by_name:
+            raise TypError(root, "scenario", "one scenario per name", f"{scenario.name} from {scenario.files[0]} "
+                           f"and {by_name[scenario.name].files[0]}")
+        by_name[scenario.name] = scenario
+    return sorted(scenarios, key=lambda s: s.name), {k: sorted(v) for k, v in splits.items() if v}
+
+
+_LAYOUT = {"kitti": "training/ or testing/ with velodyne/*.bin",
+           "nuscenes": "mmdet3d *info*.json files beside their .pcd.bin clouds",
+           "waymo": "*.tfrecord segments in the root or in training/, validation/, testing/"}
+
+
+def _kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+    scenarios, splits, names = [], {}, {}
+    for folder in ("training", "testing"):
+        base = root / folder
+        frames = sorted({p.stem for sub in ("velodyne", "velodyne_reduced") for p in (base / sub).glob("*.bin")})
+        names[folder] = {frame: _safe(f"kitti_{folder}_{frame}") for frame in frames}
+        splits[folder] = list(names[folder].values())
+        for frame in frames:
+            cloud = next(p for p in (base / "velodyne" / f"{frame}.bin", base / "velodyne_reduced" / f"{frame}.bin")
+                         if p.exists())
+            labelled = (base / "label_2").is_dir()
+            files = [cloud] + ([base / "calib" / f"{frame}.txt", base / "label_2" / f"{frame}.txt"] if labelled else [])
+            scenarios.append(DatasetScenario("kitti", names[folder][frame], tuple(p for p in files if p.is_file()),
+                                             ((root, folder, frame),)))
+    for split_file in sorted((root / "ImageSets").glob("*.txt")):
+        folder = "testing" if split_file.stem == "test" else "training"
+        lines = read_text(split_file, "KITTI split file", max_bytes=MAX_TEXT_BYTES, encoding="ascii").splitlines()
+        members = []
+        for number, line in enumerate(lines, start=1):
+            frame = line.strip()
+            if not frame:
+                continue
+            if frame not in names[folder]:
+                raise TypError(split_file, f"line {number}", f"a frame id of {folder}/velodyne (a .bin there)",
+                               frame[:80])
+            members.append(names[folder][frame])
+        splits[split_file.stem] = members
+    return scenarios, splits
+
+
+def _nuscenes(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+    scenarios, splits = [], {}
+    for info_path in sorted(p for p in root.glob("*.json") if "info" in p.name):
+        records, categories = read_info(info_path)
+        scenes: dict[str, list] = {}
+        for k, record in enumerate(records):
+            token = record.get("scene_token")
+            if token is not None and not (isinstance(token, str) and token):
+                raise TypError(info_path, f"data_list[{k}].scene_token", "a scene token (a string)", token)
+            bin_path = _record_cloud(root, info_path, k, record)
+            name = _safe(f"nuscenes_{token}") if token else _safe(bin_path.name.split(".")[0])
+            scenes.setdefault(name, []).append((_microseconds(info_path, k, record), record, bin_path))
+        split = re.search(r"_(train|val|test)$", info_path.stem)
+        for name, frames in scenes.items():
+            frames.sort(key=lambda f: f[0])
+            parts = tuple((record, categories, bin_path, info_path) for _, record, bin_path in frames)
+            scenarios.append(DatasetScenario("nuscenes", name, tuple(p[2] for p in parts), parts))
+            if split:
+                splits.setdefault(split.group(1), []).append(name)
+    return scenarios, splits
+
+
+def _record_cloud(root: Path, info_path: Path, k: int, record: dict) -> Path:
+    """The point cloud of info record ``k``: its lidar_path under the root, else that file name in
+    ``samples/LIDAR_TOP/`` or the root (mmdet3d v1.x keeps the name only)."""
+    lidar_path = record["lidar_points"]["lidar_path"]
+    name = Path(lidar_path).name
+    candidates = (root / lidar_path, root / "samples" / "LIDAR_TOP" / name, root / name)
+    found = next((p for p in candidates if p.is_file()), None)
+    if found is None:
+        raise TypError(info_path, f"data_list[{k}].lidar_points.lidar_path",
+                       f"a point cloud file at one of {[str(p) for p in dict.fromkeys(candidates)]}",
+                       f"{lidar_path!r}: not found")
+    return found
+
+
+def _microseconds(info_path: Path, k: int, record: dict) -> int:
+    """A record's time in microseconds: mmdet3d v1.x writes seconds, the devkit microseconds."""
+    t = record.get("timestamp")
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not np.isfinite(t) or not 0 <= t < 2**62:
+        raise TypError(info_path, f"data_list[{k}].timestamp", "a time in seconds or microseconds", t)
+    return int(round(t * 1e6)) if t < 1e11 else int(t)
+
+
+def _waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+    scenarios, splits = [], {}
+    for folder in ("", "training", "validation", "testing"):
+        for path in sorted((root / folder).glob("*.tfrecord")):
+            scenarios.append(DatasetScenario("waymo", _safe(path.name.split(".")[0]), (path,)))
+            if folder:
+                splits.setdefault(folder, []).append(scenarios[-1].name)
+    return scenarios, splits
+
+
+def _safe(name: str) -> str:
+    """A scenario folder name: letters, digits, ``_`` and ``-`` only, at most 80 characters."""
+    return "".join(c if c.isalnum() or c in "_-" else "_" for c in name)[:80]
+
+
+@dataclass(frozen=True)
+class SplitShare:
+    """Which scenarios of one dataset a typ split takes, and the rule, as the stage's metrics say it."""
+
+    scenarios: list[DatasetScenario]
+    rule: str
+
+
+def assign_splits(fmt: str, listing: tuple[list[DatasetScenario], dict[str, list[str]]], splits: dict,
+                  *, where: str, field: str) -> dict[str, SplitShare]:
+    """typ split -> what it takes of a listed dataset (:func:`list_dataset`), by ``splits``
+    (``SourceConfig.splits``; empty: :data:`SPLIT_NAMES`, or :data:`DEFAULT_FRACTIONS` for a
+    dataset without splits of its own).
+
+    A list names dataset splits taken whole. A fraction f takes the scenarios no list takes whose
+    ``sha256(name)``, as a number in [0, 1), falls in the split's share: the fractions laid end to
+    end in the order train, val, test, pretrain, then the others by name. A scenario in two typ
+    splits, or a split name the dataset does not have, raises TypError naming ``<field>.splits``.
+    """
+    scenarios, own = listing
+    if not splits:
+        splits = ({split: [next(n for n in names if n in own)] for split, names in SPLIT_NAMES.items()
+                   if any(n in own for n in names)} if own else dict(DEFAULT_FRACTIONS))
+    by_name = {s.name: s for s in scenarios}
+    shares: dict[str, SplitShare] = {}
+    owner: dict[str, str] = {}
+    for split, names in splits.items():
+        if not isinstance(names, list):
+            continue
+        for n in names:
+            if n not in own:
+                raise TypError(where, f"{field}.splits.{split}", f"split names this {fmt} root has: {sorted(own)}", n)
+        members = sorted({m for n in names for m in own[n]})
+        for m in members:
+            if owner.setdefault(m, split) != split:
+                raise TypError(where, f"{field}.splits", "typ splits that share no scenario",
+                               f"{m} in both {owner[m]} and {split}")
+        shares[split] = SplitShare([by_name[m] for m in members], f"{fmt} split {' + '.join(names)}")
+    order = {name: i for i, name in enumerate(SPLIT_NAMES)}
+    fractions = sorted(((s, f) for s, f in splits.items() if not isinstance(f, list)),
+                       key=lambda item: (order.get(item[0], len(order)), item[0]))
+    pool = [s for s in scenarios if s.name not in owner]
+    low = 0.0
+    for split, fraction in fractions:
+        high = low + fraction
+        shares[split] = SplitShare([s for s in pool if low <= name_hash(s.name) < high],
+                                   f"{fmt}: sha256(scenario name) in [{low:.3g}, {high:.3g}) of the "
+                                   f"{len(pool)} scenarios no named split takes")
+        low = high
+    return shares
+
+
+def name_hash(name: str) -> float:
+    """A scenario name as a number in [0, 1): the first 8 bytes of its sha256, big-endian, over 2^64."""
+    return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2.0**64
+
+
+def source_splits(block: SourceConfig, data_root: Path, *, where: str, field: str) -> dict[str, SplitShare]:
+    """typ split -> its share of the single-agent dataset ``block`` names (rooted at ``data_root``)."""
+    return assign_splits(block.format, list_dataset(block.format, data_root), block.splits, where=where, field=field)
+
+
+@dataclass(frozen=True)
+class IngestJob:
+    """One scenario of a single-agent dataset, written as a one-agent OPV2V-layout scenario of a domain."""
+
+    domain: str
+    split: str
+    scenario: DatasetScenario
+    #: how the scenario came to this split (:attr:`SplitShare.rule`)
+    rule: str = ""
+    #: frames, views, points, boxes, from :meth:`check` when planned
+    counts: dict = field(default_factory=dict, compare=False, hash=False)
+
+    @property
+    def name(self) -> str:
+        return self.scenario.name
+
+    def folder(self, out: Path) -> Path:
+        return out / self.domain / self.split / self.name
+
+    def key(self) -> str:
+        return self.scenario.key()
+
+    def describe(self) -> dict:
+        return {"domain": self.domain, "split": self.split, "format": self.scenario.fmt, "rule": self.rule,
+                "files": [str(p.resolve()) for p in self.scenario.files]}
+
+    def check(self) -> dict:
+        """Read every frame as :meth:`write` will, keeping none: the counts, or TypError naming the
+        first bad file and field."""
+        return frame_counts(self.scenario)
+
+    def write(self, tmp: Path) -> dict:
+        """Write the scenario's frames into ``tmp``; its counts."""
+        return write_frames(self.scenario, tmp, sensor=self.scenario.fmt)
+
+
+def frame_counts(frames: Iterable[Scene]) -> dict:
+    """frames, views, points, boxes of a single-agent scenario, each frame checked as it is written:
+    at least one frame, one frame per timestamp, object ids unique within a frame (one yaml entry
+    per vehicle)."""
+    counts = {"frames": 0, "views": 0, "points": 0, "boxes": 0}
+    stamps = set()
+    for scene in frames:
+        _check_ids(scene)
+        if scene.timestamp in stamps:
+            raise TypError(scene.ego.where, "timestamp", "one frame per timestamp in a scenario", scene.timestamp)
+        stamps.add(scene.timestamp)
+        counts["frames"] += 1
+        counts["views"] += 1
+        counts["points"] += len(scene.ego.points)
+        counts["boxes"] += len(scene.ego.boxes)
+    if not counts["frames"]:
+        raise TypError(getattr(frames, "name", "scenario"), "frames", "at least one frame", "none")
+    return counts
+
+
+def _check_ids(scene: Scene) -> None:
+    ids = scene.ego.box_ids.tolist()
+    if len(set(ids)) != len(ids):
+        raise TypError(scene.ego.where, "box ids", "one id per labelled object",
+                       sorted({i for i in ids if ids.count(i) > 1})[:5])
+
+
+def read_frames(fmt: str, path: str | Path) -> list[DatasetScenario]:
+    """``typ generate --format``'s scenarios: every scenario of the dataset at ``path``
+    (:func:`list_dataset`; for waymo, ``path`` may also be one tfrecord)."""
     path = Path(path)
     if fmt not in FORMATS:
         raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", fmt)
     if not path.exists():
         raise TypError(path, "--input", f"an existing {fmt} file or folder", "not found")
-    if fmt == "kitti":
-        scenarios = []
-        for split in ("training", "testing"):
-            names = sorted({p.stem for folder in ("velodyne", "velodyne_reduced")
-                            for p in (path / split / folder).glob("*.bin")})
-            for name in names:
-                scene = read_kitti_frame(path, name, split)
-                scenarios.append([dataclasses.replace(scene, scenario=f"kitti_{split}_{name}", timestamp="000000")])
-    elif fmt == "nuscenes":
-        infos = sorted(path.glob("*_info*.json")) if path.is_dir() else []
-        if len(infos) != 1:
-            raise TypError(path, "--input", "a folder with *.pcd.bin keyframes and exactly one mmdet3d *_info.json",
-                           [p.name for p in infos])
-        scenarios = [[dataclasses.replace(read_nuscenes_frame(b, infos[0]), scenario=_name(b), timestamp="000000")]
-                     for b in sorted(path.glob("*.pcd.bin"))]
-    else:
-        files = sorted(path.glob("*.tfrecord")) if path.is_dir() else [path]
-        scenarios = [WaymoSegment(f) for f in files]
-    if not scenarios:
-        raise TypError(path, "--input", f"{fmt} frames", "none found")
-    return scenarios
-
-
-def _name(path: Path) -> str:
-    stem = path.name.split(".")[0]
-    return "".join(c if c.isalnum() or c in "_-" else "_" for c in stem)[:80]
+    if fmt == "waymo" and path.is_file():
+        return [DatasetScenario("waymo", _safe(path.name.split(".")[0]), (path,))]
+    return list_dataset(fmt, path)[0]
 
 
 def to_sensor_frame(scene: Scene, height: float) -> Scene:
@@ -110,35 +376,36 @@ def to_sensor_frame(scene: Scene, height: float) -> Scene:
     return dataclasses.replace(scene, agents={ego.agent_id: view})
 
 
-def write_single_agent(scenarios: Iterable[Iterable[Scene]], root: Path) -> list[Path]:
-    """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml``, frame by frame as
-    the scenario yields them, numbered ``000000``, ``000001``, ... in time order, with its manifest;
-    returns the folders."""
+def write_single_agent(scenarios: Iterable[DatasetScenario], root: Path) -> list[Path]:
+    """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml`` (:func:`write_frames`),
+    each whole or not at all; returns the folders."""
     folders = []
     for scenario in scenarios:
-        frames = iter(scenario)
-        first = next(frames)
-        target = root / first.scenario
-        frames = _chain(first, frames)
-        del first
+        target = root / scenario.name
         with atomic_path(target, stage=STAGE) as tmp:
             tmp.mkdir(parents=True)
-            stamps = []
-            for scene in frames:
-                write_scene(dataclasses.replace(scene, scenario=tmp.name), tmp)
-                stamps.append(scene.timestamp)
-                del scene
-            _number_in_time_order(tmp, stamps)
-            write_manifest(tmp, STAGE, {"frames": len(stamps)})
+            counts = write_frames(scenario, tmp, sensor=scenario.fmt)
+            write_manifest(tmp, STAGE, {"frames": counts["frames"]})
         folders.append(target)
     return folders
 
 
-def _chain(first: Scene, rest: Iterator[Scene]) -> Iterator[Scene]:
-    """``first``, then ``rest``, holding ``first`` no longer than it takes to hand it on."""
-    yield first
-    del first
-    yield from rest
+def write_frames(frames: Iterable[Scene], folder: Path, *, sensor: str) -> dict:
+    """Write a single-agent scenario's frames into ``folder`` as they come, the ego's yaml naming its
+    LiDAR (``sensor``), numbered ``000000``, ``000001``, ... in time order; returns
+    :func:`frame_counts`'s counts."""
+    stamps = []
+
+    def written() -> Iterator[Scene]:
+        for scene in frames:
+            write_scene(dataclasses.replace(scene, scenario=folder.name), folder,
+                        meta={scene.ego_id: {"sensor": sensor}})
+            stamps.append(scene.timestamp)
+            yield scene
+
+    counts = frame_counts(written())
+    _number_in_time_order(folder, stamps)
+    return counts
 
 
 def _number_in_time_order(folder: Path, stamps: list[str]) -> None:

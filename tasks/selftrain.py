@@ -33,7 +33,7 @@ from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
 from typ.config import SelftrainConfig, as_dict
 from typ.errors import TypError
-from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene
+from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor
 from typ.voxel import Grid
 
 STAGE = "selftrain"
@@ -84,12 +84,23 @@ def dummy_ego_tuples(views: ViewSet) -> Tuples:
     return Tuples(x, y, np.zeros_like(x), np.zeros_like(x))
 
 
-def target_frames(split_root: Path) -> list:
-    """Every frame's ego view (the only real cloud of single-agent target scenes)."""
+def target_frames(split_root: Path, heights: dict[str, float] | None = None, domain: str = "") -> list:
+    """Every frame's ego view (the only real cloud of single-agent target scenes).
+
+    heights: ``voxelize.mount_height``. A scenario whose yaml names its LiDAR (a real dataset's,
+    :func:`typ.formats.opv2v.scenario_sensor`) is then seen from a sensor at ``domain``'s height
+    straight above or below that LiDAR, so that one grid (``sensor_grid(domain)``) puts every
+    frame's ground in the same channel, as voxelize put it.
+    """
+    from tasks.ingest import to_sensor_frame
+    from typ.sensors import mount_height
+
     frames = []
     for folder in list_scenarios(split_root):
         ego_id = list_agents(folder)[0]
-        frames += [read_scene(folder, ts, agents=[ego_id]).ego for ts in list_timestamps(folder)]
+        sensor = scenario_sensor(folder) if heights is not None else None
+        lift = mount_height(domain, heights) - mount_height(sensor, heights) if sensor else 0.0
+        frames += [to_sensor_frame(read_scene(folder, ts, agents=[ego_id]), lift).ego for ts in list_timestamps(folder)]
     return frames
 
 
@@ -176,7 +187,8 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None)
         raise TypError("params.yaml", "selftrain.generator", "typ unless stage2.resim is true (no re-simulated "
                        "tuples to train typ_resim on)", block.generator)
     variants = variants_to_run(block, resim=resim)
-    frames = target_frames(root / block.sim / block.target_domain / block.target_split)
+    frames = target_frames(root / block.sim / block.target_domain / block.target_split, cfg.voxelize.mount_height,
+                           block.target_domain)
     stats = point_statistics([f.points for f in frames], target_grid)
     refs = pseudo_references(frames, block, target_grid, np.random.default_rng(block.seed))
     spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor if resim else None

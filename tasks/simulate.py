@@ -5,13 +5,18 @@ Output: ``<out>/<domain>/<split>/<scenario>/<agent_id>/<timestamp>.pcd|.yaml`` (
 the ego is the first agent id in sorted order), beside them the semantic occupancy ground
 truth ``<timestamp>_semantic_occupancy.npz`` of each view of the domains in
 ``simulate.occupancy`` (:mod:`typ.ssc`; real datasets bring their own or none), plus
-``<scenario>/_typ.json``, the scenario's job key. A real dataset's scenarios (the first ``scenarios[domain][split]`` of each split
-folder, by name) are checked before anything is written (:func:`plan_jobs`: layout, yaml
-keys, pose format, agents; the first bad file is named) and their ``.pcd``/``.yaml`` files are
-hard-linked into the output (copied across file systems), so the later stages read them as
-they read simulated ones. A scenario whose key is unchanged is skipped (a real one's key: its
-files' names, sizes and modification times); each scenario is written to a temporary folder
-and renamed into place, so a killed run leaves only whole scenarios.
+``<scenario>/_typ.json``, the scenario's job key. A real dataset's scenarios (the first
+``scenarios[domain][split]`` of each split, by name, its sources in order) are checked before
+anything is written (:func:`plan_jobs`:
+layout, yaml keys, pose format, agents, every frame of a single-agent dataset; the first bad
+file is named). An OPV2V-layout scenario's ``.pcd``/``.yaml`` files are hard-linked into the
+output (copied across file systems); a KITTI / nuScenes / Waymo scenario is written as a
+one-agent scenario in its LiDAR's frame (:mod:`tasks.ingest`), so the later stages read them as
+they read simulated ones. A scenario whose key is unchanged is skipped (an OPV2V-layout one's
+key: its files' names, sizes and modification times; a single-agent one's: its files' content);
+each scenario is written to a temporary folder and renamed into place, so a killed run leaves
+only whole scenarios. Which dataset split went to which of typ's, and by what rule, is in the
+metrics (``splits``).
 """
 from __future__ import annotations
 
@@ -20,14 +25,16 @@ import hashlib
 import os
 import shutil
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from typ import __version__
+from tasks.ingest import IngestJob, source_splits
 from tasks.scene_stage import SceneStage
-from typ.config import Config, SimulateConfig, as_dict
+from typ.config import Config, SimulateConfig, SourceConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
 from typ.io import (SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_manifest,
@@ -110,6 +117,11 @@ class ImportJob:
     def name(self) -> str:
         return self.source.name
 
+    @property
+    def rule(self) -> str:
+        """How the scenario came to its split (the stage's metrics)."""
+        return f"opv2v folder {self.source.parent.name}"
+
     def folder(self, out: Path) -> Path:
         return out / self.domain / self.split / self.name
 
@@ -124,6 +136,10 @@ class ImportJob:
 
     def describe(self) -> dict:
         return {"domain": self.domain, "split": self.split, "source": str(self.source.resolve())}
+
+    def check(self) -> dict:
+        """The scenario checked (:func:`typ.formats.opv2v.check_scenario`): its counts."""
+        return check_scenario(self.source)
 
     def write(self, tmp: Path) -> dict:
         """Hard-link (else copy) the scenario's files into ``tmp``; its counts."""
@@ -145,19 +161,19 @@ _IMPORT_CODE = code_digest(typ.formats.opv2v, typ.formats.pcd)
 def plan_jobs(cfg: SimulateConfig, *, root: Path = Path("."), out: Path | None = None,
               where: str = "params.yaml") -> list:
     """All scenarios the config asks for: :class:`ScenarioJob` per simulated scenario, each with its
-    own seed derived from ``cfg.seed``, and :class:`ImportJob` per scenario of a real dataset.
+    own seed derived from ``cfg.seed``, :class:`ImportJob` per scenario of a real OPV2V-layout
+    dataset and :class:`tasks.ingest.IngestJob` per scenario of a KITTI / nuScenes / Waymo one.
 
     A simulated scenario's seed depends only on (seed, domain, split, index), so adding scenarios
     to a split leaves the existing ones byte-identical and DVC/our keys skip them. A real
     dataset's root (relative to ``root``) is checked here, before anything is written: its
-    split folders, and every scenario not already taken unchanged into ``out`` (the first bad
-    file raises TypError naming it; a split asked for more scenarios than it has names ``where``).
+    splits, and every scenario not already taken unchanged into ``out`` (the first bad file
+    raises TypError naming it; a split asked for more scenarios than it has names ``where``).
     """
     jobs = []
     for domain in sorted(cfg.scenarios):
-        real = cfg.source_root(domain)
-        if real is not None:
-            jobs += _real_jobs(cfg, domain, root / real, out, where)
+        if cfg.source_blocks(domain):
+            jobs += _real_jobs(cfg, domain, root, out, where)
             continue
         for split in sorted(cfg.scenarios[domain]):
             for index in range(cfg.scenarios[domain][split]):
@@ -172,20 +188,53 @@ def plan_jobs(cfg: SimulateConfig, *, root: Path = Path("."), out: Path | None =
     return jobs
 
 
-def _real_jobs(cfg: SimulateConfig, domain: str, data_root: Path, out: Path | None, where: str) -> list[ImportJob]:
+def _real_jobs(cfg: SimulateConfig, domain: str, root: Path, out: Path | None, where: str) -> list:
+    """The first ``scenarios[domain][split]`` scenarios each split takes from the domain's sources,
+    every one not already taken unchanged into ``out`` checked now."""
     wanted = {split: n for split, n in sorted(cfg.scenarios[domain].items()) if n > 0}
+    found: dict[str, list] = {split: [] for split in wanted}
+    for index, block in enumerate(cfg.source_blocks(domain)):
+        for split, jobs in _source_jobs(block, domain, list(wanted), root / block.root, where,
+                                        cfg.source_field(domain, index)).items():
+            found.get(split, []).extend(jobs)
+    twice = [name for name, k in Counter(job.name for jobs in found.values() for job in jobs).items() if k > 1]
+    if twice:   # one scenario in two splits, or two datasets' scenarios of one name
+        raise TypError(where, f"simulate.sources.{domain}", "sources whose scenarios have distinct names",
+                       f"{twice[0]} twice")
     jobs = []
-    for split, scenarios in check_root(data_root, list(wanted)).items():
-        if len(scenarios) < wanted[split]:
+    for split, n in wanted.items():
+        if len(found[split]) < n:
             raise TypError(where, f"simulate.scenarios.{domain}.{split}",
-                           f"at most {len(scenarios)} (the scenarios in {data_root / split})", wanted[split])
-        for folder in scenarios[:wanted[split]]:
-            job = ImportJob(domain, split, folder)
+                           f"at most {len(found[split])} (the scenarios its sources give it)", n)
+        for job in found[split][:n]:
             manifest = read_json_or_none(job.folder(out) / MANIFEST) if out is not None else None
             if manifest is None or manifest.get("key") != job.key():   # new or changed: check it now
-                job = dataclasses.replace(job, counts=check_scenario(folder))
+                job = dataclasses.replace(job, counts=job.check())
             jobs.append(job)
     return jobs
+
+
+def _source_jobs(block: SourceConfig, domain: str, splits: list[str], data_root: Path, where: str,
+                 field: str) -> dict[str, list]:
+    """typ split -> the jobs of one source, its scenarios sorted by name."""
+    if block.format != "opv2v":
+        shares = source_splits(block, data_root, where=where, field=field)
+        return {split: [IngestJob(domain, split, s, rule=share.rule) for s in share.scenarios]
+                for split, share in shares.items()}
+    folders = {split: block.splits.get(split, []) if block.splits else [split] for split in splits}
+    found = check_root(data_root, sorted({f for names in folders.values() for f in names}))
+    return {split: sorted((ImportJob(domain, split, s) for f in names for s in found[f]), key=lambda job: job.name)
+            for split, names in folders.items()}
+
+
+def split_rules(jobs: list) -> dict:
+    """domain -> split -> how the real scenarios taken into it were chosen (the stage's metrics)."""
+    rules: dict = {}
+    for job in jobs:
+        if not isinstance(job, ScenarioJob):
+            rules.setdefault(job.domain, {}).setdefault(job.split, set()).add(job.rule)
+    return {domain: {split: sorted(r) for split, r in sorted(splits.items())}
+            for domain, splits in sorted(rules.items())}
 
 
 def stale_scenarios(jobs: list, out: Path) -> list[Path]:
@@ -195,22 +244,22 @@ def stale_scenarios(jobs: list, out: Path) -> list[Path]:
     return sorted(p for p in out.glob("*/*/*") if p not in wanted and not p.name.startswith("."))
 
 
-def _job_state(job: ScenarioJob | ImportJob, out: Path) -> tuple[Path, str, dict, dict | None]:
+def _job_state(job: ScenarioJob | ImportJob | IngestJob, out: Path) -> tuple[Path, str, dict, dict | None]:
     """(output folder, key, result fields, the skipped result when the stored scenario has the key)."""
     folder, key = job.folder(out), job.key()
     base = {"scenario": job.name, "domain": job.domain, "split": job.split,
-            "imported": isinstance(job, ImportJob)}
+            "imported": not isinstance(job, ScenarioJob)}
     manifest = read_json_or_none(folder / MANIFEST)
     done = {**base, "skipped": "unchanged", **manifest["counts"]} if manifest and manifest.get("key") == key else None
     return folder, key, base, done
 
 
-def unchanged(job: ScenarioJob | ImportJob, *, out: Path) -> dict | None:
+def unchanged(job: ScenarioJob | ImportJob | IngestJob, *, out: Path) -> dict | None:
     """The skipped result of a scenario already written with this job's key, else None."""
     return _job_state(job, out)[3]
 
 
-def run_job(job: ScenarioJob | ImportJob, out: Path) -> dict:
+def run_job(job: ScenarioJob | ImportJob | IngestJob, out: Path) -> dict:
     """Simulate or take one scenario and write it; returns counts, or ``skipped`` with the reason."""
     folder, key, base, done = _job_state(job, out)
     if done is not None:
@@ -247,6 +296,9 @@ def scene_stage(cfg: Config, root: Path) -> SceneStage:
     the stage's run starts or writes anything."""
     out = root / cfg.simulate.out
     jobs = plan_jobs(cfg.simulate, root=root, out=out, where=cfg.source)
+    rules = split_rules(jobs)
     return SceneStage(out=out, plan=lambda: (jobs, stale_scenarios(jobs, out)),
                       owned=lambda path: written_by(path, STAGE), work=run_job, work_kwargs={"out": out},
-                      label=lambda job: job.name, summarize=summarize, unchanged=unchanged)
+                      label=lambda job: job.name,
+                      summarize=lambda results: {**summarize(results), **({"splits": rules} if rules else {})},
+                      unchanged=unchanged)

@@ -19,11 +19,12 @@ import numpy as np
 from tasks.scene_stage import SceneStage
 from typ.config import Config, GridConfig, VoxelizeConfig
 from typ.errors import TypError
-from typ.formats.opv2v import list_agents, list_timestamps, read_scene
+from typ.formats.opv2v import list_agents, list_timestamps, read_scene, scenario_sensor
 import typ.formats.opv2v
 import typ.store
 import typ.voxel
 from typ.io import code_digest, hash_files
+from typ.sensors import mount_height
 from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels, written_by_store
 from typ.voxel import Grid, box_map, voxelize
 
@@ -66,7 +67,8 @@ def stale_outputs(items: list[ScenarioInput], out: Path) -> list[Path]:
 
 def _scene_state(item: ScenarioInput, cfg: VoxelizeConfig, out: Path) -> tuple[Path, Grid, str, dict]:
     """(output path, grid, input hash, result fields) of one scenario."""
-    grid = cfg.sensor_grid(item.dataset, where=str(item.folder))
+    height = mount_height(scenario_sensor(item.folder) or item.dataset, cfg.mount_height, where=str(item.folder))
+    grid = to_grid(cfg.grid).for_sensor(height)
     base = {"scenario": item.name, "dataset": item.dataset, "split": item.split}
     return scene_path(out, item.dataset, item.split, item.name), grid, input_hash(item, grid), base
 
@@ -83,8 +85,9 @@ def unchanged(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict | 
 
 
 def run_scene(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict:
-    """Voxelize every (agent, timestamp) of one scenario on its dataset's sensor grid
-    (:meth:`VoxelizeConfig.sensor_grid`); skip it when its inputs are unchanged."""
+    """Voxelize every (agent, timestamp) of one scenario on its dataset's sensor grid (the grid at
+    the height of the LiDAR its yaml names, a real dataset's, else of its domain:
+    :func:`typ.sensors.mount_height`); skip it when its inputs are unchanged."""
     path, grid, digest, base = _scene_state(item, cfg, out)
     if stored_input_hash(path) == digest:  # as unchanged(): the flow settles most such scenes itself
         return {**base, "skipped": "unchanged"}

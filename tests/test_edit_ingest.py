@@ -12,7 +12,7 @@ from typ.scene import VEHICLE_LABELS
 from tasks.ingest import read_frames, to_sensor_frame, write_single_agent
 from typ.config import config_from_dict
 from typ.errors import TypError
-from typ.formats.opv2v import list_agents, list_timestamps, read_scene
+from typ.formats.opv2v import list_agents, list_timestamps, read_scene, scenario_sensor
 from typ.geometry import pose_to_matrix
 from typ.scene import AgentView, Scene
 from typ.voxel import Grid
@@ -75,12 +75,13 @@ def test_vehicle_frame_to_sensor_frame_keeps_world_geometry():
 @pytest.mark.skipif(not (DATA / "kitti_object_vis").is_dir(), reason="../shared/data not present")
 def test_kitti_frames_become_single_agent_opv2v_scenarios(tmp_path):
     scenarios = read_frames("kitti", DATA / "kitti_object_vis")
-    assert [s[0].scenario for s in scenarios] == ["kitti_training_000000", "kitti_training_000001"]
+    assert [s.name for s in scenarios] == ["kitti_training_000000", "kitti_training_000001"]
     folders = write_single_agent(scenarios, tmp_path)
-    for frames, folder in zip(scenarios, folders):
+    for scenario, folder in zip(scenarios, folders):
         assert list_agents(folder) == ["ego"] and list_timestamps(folder) == ["000000"]
+        assert scenario_sensor(folder) == "kitti"          # the LiDAR, for its mount height downstream
         back = read_scene(folder, "000000").ego
-        src = frames[0].ego
+        src = next(iter(scenario)).ego
         assert back.points.shape == src.points.shape
         assert np.allclose(back.points[:, :3], src.points[:, :3], atol=1e-5)
         assert np.allclose(back.boxes, src.boxes, atol=1e-5) and back.box_labels == src.box_labels

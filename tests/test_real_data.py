@@ -25,7 +25,7 @@ import yaml
 
 from tasks.simulate import plan_jobs, run_job
 from test_crash_safety import run_stages, stage_env
-from typ.config import config_from_dict
+from typ.config import SourceConfig, config_from_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene
 from typ.formats.pcd import read_pcd
@@ -244,7 +244,8 @@ def test_sources_are_checked_with_the_params(real_root):
         with pytest.raises(TypError, match=field):
             config_from_dict(raw)
     cfg = config_from_dict(params("relative/opv2v")).simulate
-    assert cfg.source_root("target") == "relative/opv2v" and cfg.source_root("source") is None
+    assert cfg.source_blocks("target") == (SourceConfig(format="opv2v", root="relative/opv2v"),)
+    assert cfg.source_blocks("source") == ()
 
 
 def test_a_changed_scenario_is_checked_again_and_taken_again(real_root, tmp_path):

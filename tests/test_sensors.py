@@ -130,7 +130,7 @@ def test_a_sensor_block_builds_the_sensor_it_describes():
 @pytest.mark.parametrize("change, field", [
     ({"elevations_deg": [2.0, 1.0]}, "sensor.elevations_deg"),
     ({"elevations_deg": {"n": 4, "low": 5, "high": -5}}, "sensor.elevations_deg.low/high"),
-    ({"elevations_deg": {"n": 4, "low": -5, "high": 5, "spacing": "log"}}, "sensor.elevations_deg"),
+    ({"elevations_deg": {"n": 4, "low": -5, "high": 5, "spacing": "log"}}, "sensor.elevations_deg.spacing"),
     ({"beam_heights_m": [0.1]}, "sensor.beam_heights_m"),
     ({"mount_height": -1.0}, "sensor.mount_height"),
     ({"max_range": 0.5}, "sensor.min_range/max_range"),

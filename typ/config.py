@@ -157,6 +157,44 @@ class DomainSimulation:
     agents_max: int | None = None
 
 
+#: ``simulate.sources.<domain>.format``: the datasets typ reads a domain from. ``opv2v``: a
+#: collaborative root in OPV2V layout (OPV2V, V2V4Real), taken as it is; the others: single-agent
+#: datasets, each frame moved into its LiDAR's frame and written as a one-agent scenario
+SOURCE_FORMATS = ("kitti", "nuscenes", "waymo", "opv2v")
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """A real dataset a domain's scenarios come from (``simulate.sources.<domain>``, or one entry of
+    a list of them), with how its own splits become typ's."""
+
+    format: Literal["kitti", "nuscenes", "waymo", "opv2v"]
+    #: the dataset root, relative to the project root or absolute
+    root: str
+    #: typ split -> the dataset's split names (a list: KITTI ImageSets files or training/testing,
+    #: Waymo's training/validation/testing folders, nuScenes info files *_train/*_val/*_test,
+    #: OPV2V's split folders), or a fraction of the scenarios that no listed split takes (by a
+    #: hash of the scenario name). Unset: each typ split takes the dataset split of its name
+    #: (train/training, val/validation, test/testing), and a dataset without splits is shared
+    #: out by ``DEFAULT_FRACTIONS``
+    splits: dict[str, list[str] | float] = field(default_factory=dict)
+
+    def check(self, where: str, name: str) -> None:
+        if not self.root.strip():
+            raise TypError(where, f"{name}.root", "the path of the dataset root", self.root)
+        fractions = {split: v for split, v in self.splits.items() if isinstance(v, float)}
+        for split, value in self.splits.items():
+            if isinstance(value, float) and not 0 < value <= 1:
+                raise TypError(where, f"{name}.splits.{split}", "a fraction in (0, 1]", value)
+            if isinstance(value, list) and not (value and all(v.strip() for v in value)):
+                raise TypError(where, f"{name}.splits.{split}", "a list of the dataset's split names", value)
+        if sum(fractions.values()) > 1 + 1e-9:
+            raise TypError(where, f"{name}.splits", "fractions that add up to at most 1", fractions)
+        if self.format == "opv2v" and fractions:
+            raise TypError(where, f"{name}.splits", "split folder names (an OPV2V root's splits are its folders)",
+                           fractions)
+
+
 @dataclass(frozen=True)
 class SimulateConfig:
     """Embedded simulator: which scenarios of which sensor domain go to which split."""
@@ -173,20 +211,31 @@ class SimulateConfig:
     scenarios: dict[str, dict[str, int]]
     workers: int
     out: str
-    #: domain -> ``simulate`` (the embedded simulator) or the root of a real dataset in OPV2V layout
+    #: domain -> ``simulate`` (the embedded simulator); the root of a real dataset in OPV2V layout
     #: (``<root>/<split>/<scenario>/<agent>/<timestamp>.pcd|.yaml``: OPV2V, V2V4Real), relative to
-    #: the project root or absolute; its scenarios are checked at start and linked into ``out``
-    sources: dict[str, str] = field(default_factory=dict)
+    #: the project root or absolute, its scenarios linked into ``out``; or a :class:`SourceConfig`
+    #: (``{format, root, splits}``), or a list of them whose scenarios the domain's splits share.
+    #: A real dataset is checked whole at start, before anything is written
+    sources: dict[str, str | SourceConfig | list[SourceConfig]] = field(default_factory=dict)
     #: domain -> frames / agents_min / agents_max for that domain's scenarios
     domains: dict[str, DomainSimulation] = field(default_factory=dict)
     #: the simulated domains whose views also get semantic occupancy ground truth (:mod:`typ.ssc`,
     #: 0.15-0.4 s a view): only the domains that semantic scene completion trains and scores on
     occupancy: tuple[str, ...] = ("real_cav",)
 
-    def source_root(self, domain: str) -> str | None:
-        """The real dataset root of ``domain``, or None when the simulator makes it."""
+    def source_blocks(self, domain: str) -> tuple[SourceConfig, ...]:
+        """The real datasets ``domain`` is read from, in order (a plain root is an ``opv2v`` block);
+        empty when the simulator makes it."""
         source = self.sources.get(domain, SIMULATE)
-        return None if source == SIMULATE else source
+        if source == SIMULATE:
+            return ()
+        if isinstance(source, str):
+            return (SourceConfig(format="opv2v", root=source),)
+        return tuple(source) if isinstance(source, list) else (source,)
+
+    def source_field(self, domain: str, index: int) -> str:
+        """The params field of ``source_blocks(domain)[index]``, for errors."""
+        return f"simulate.sources.{domain}" + (f"[{index}]" if isinstance(self.sources.get(domain), list) else "")
 
     def for_domain(self, domain: str) -> tuple[int, int, int]:
         """(frames, agents_min, agents_max) of ``domain``'s scenarios."""
@@ -217,9 +266,13 @@ class SimulateConfig:
         for domain, source in self.sources.items():
             if domain not in DOMAINS:
                 raise TypError(where, f"{name}.sources.{domain}", f"a sensor domain in {list(DOMAINS)}", domain)
-            if not source.strip():
+            if isinstance(source, str) and not source.strip():
                 raise TypError(where, f"{name}.sources.{domain}",
                                f"{SIMULATE!r} or the path of a dataset root in OPV2V layout", source)
+            if isinstance(source, list) and not source:
+                raise TypError(where, f"{name}.sources.{domain}", "at least one dataset block", source)
+            for index, block in enumerate(self.source_blocks(domain)):
+                block.check(where, self.source_field(domain, index).replace("simulate", name, 1))
 
 
 @dataclass(frozen=True)
@@ -1302,6 +1355,9 @@ def _build(tp, value, where: str, name: str):
             raise TypError(where, name, f"a mapping of {_tname(karg)} to {_tname(varg)}", value)
         return {_build(karg, k, where, name): _build(varg, v, where, _join(name, str(k))) for k, v in value.items()}
     if origin in (typing.Union, types.UnionType):
+        fitting = [arg for arg in typing.get_args(tp) if _fits(arg, value)]
+        if len(fitting) == 1:  # one alternative of this shape: its own error names the bad field inside
+            return _build(fitting[0], value, where, name)
         errors = []
         for arg in typing.get_args(tp):
             try:
@@ -1338,6 +1394,17 @@ def _build(tp, value, where: str, name: str):
     if tp is Any:
         return value
     raise TypeError(f"config type {tp!r} for {name} is not supported")
+
+
+def _fits(tp, value) -> bool:
+    """Whether ``value`` has the shape of ``tp`` (a mapping for a dataclass or dict, a list for a
+    list or tuple), so that a union's error can come from the one alternative it could be."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp) or origin is dict:
+        return isinstance(value, dict)
+    if origin in (list, tuple):
+        return isinstance(value, (list, tuple))
+    return not isinstance(value, (dict, list, tuple))
 
 
 def build_typed(tp, value, where: str, name: str = ""):

@@ -36,6 +36,14 @@ def read_nuscenes_frame(pcd_bin_path: str | os.PathLike, info_json_path: str | o
     """
     bin_path, info_path = Path(pcd_bin_path), Path(info_json_path)
     info, categories = _find_record(info_path, bin_path.name)
+    return record_frame(info, categories, bin_path, info_path)
+
+
+def record_frame(info: dict, categories: dict[str, int], bin_path: str | os.PathLike,
+                 info_path: str | os.PathLike) -> Scene:
+    """The keyframe of one info record (an entry of :func:`read_info`'s records) whose point cloud
+    is ``bin_path``, as :func:`read_nuscenes_frame` reads it; ``info_path`` names the record in errors."""
+    bin_path, info_path = Path(bin_path), Path(info_path)
     cloud = read_bin(bin_path, 5)
     points = np.concatenate([cloud[:, :3], cloud[:, 3:4] / np.float32(255.0)], axis=1).astype(np.float32)
     lidar = info["lidar_points"]
@@ -68,6 +76,18 @@ def read_nuscenes_frame(pcd_bin_path: str | os.PathLike, info_json_path: str | o
 
 def _find_record(info_path: Path, bin_name: str) -> tuple[dict, dict[str, int]]:
     """(the record whose lidar_path names ``bin_name``, the categories name -> label index)."""
+    records, categories = read_info(info_path)
+    for record in records:
+        if Path(record["lidar_points"]["lidar_path"]).name == bin_name:
+            return record, categories
+    raise TypError(info_path, "data_list[].lidar_points.lidar_path", f"a record for {bin_name}",
+                   f"{len(records)} records, none for that file")
+
+
+def read_info(info_path: str | os.PathLike) -> tuple[list[dict], dict[str, int]]:
+    """An mmdet3d (v1.x) info JSON: (its ``data_list`` records, each a mapping with
+    ``lidar_points.lidar_path`` a string; the categories name -> label index)."""
+    info_path = Path(info_path)
     doc = load_json(info_path, "mmdet3d info JSON", max_bytes=MAX_INFO_BYTES)
     if not isinstance(doc, dict) or not isinstance(doc.get("data_list"), list):
         raise TypError(info_path, "data_list", "a list of info records (mmdet3d v1.x)", "missing")
@@ -81,12 +101,9 @@ def _find_record(info_path: Path, bin_name: str) -> tuple[dict, dict[str, int]]:
             raise TypError(info_path, f"data_list[{k}]", "a mapping with lidar_points {lidar_path, lidar2ego}",
                            record if not isinstance(record, dict) else record.get("lidar_points"))
         lidar_path = record["lidar_points"].get("lidar_path", "")
-        if not isinstance(lidar_path, str):
+        if not isinstance(lidar_path, str) or not lidar_path:
             raise TypError(info_path, f"data_list[{k}].lidar_points.lidar_path", "a file name", lidar_path)
-        if Path(lidar_path).name == bin_name:
-            return record, categories
-    raise TypError(info_path, "data_list[].lidar_points.lidar_path", f"a record for {bin_name}",
-                   f"{len(doc['data_list'])} records, none for that file")
+    return doc["data_list"], categories
 
 
 def _name(info_path: Path, field: str, value) -> str:

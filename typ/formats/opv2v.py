@@ -161,6 +161,20 @@ def check_scenario(scenario_dir: str | os.PathLike) -> dict[str, int]:
     return counts
 
 
+def scenario_sensor(scenario_dir: str | os.PathLike) -> str | None:
+    """The LiDAR the ego's first yaml names (``sensor``: typ writes a real dataset's name there,
+    ``kitti``, ``waymo``, ...), or None when it names none (a simulated or dropped-in scenario)."""
+    s = Path(scenario_dir)
+    stamps = list_timestamps(s)
+    if not stamps:
+        return None
+    ego = list_agents(s)[0]
+    sensor = read_meta(s, ego, stamps[0]).get("sensor")
+    if sensor is not None and not (isinstance(sensor, str) and sensor.strip()):
+        raise TypError(s / ego / f"{stamps[0]}.yaml", "sensor", "the name of the LiDAR (a string)", sensor)
+    return sensor
+
+
 def read_meta(scenario_dir: str | os.PathLike, agent: str, timestamp: str) -> dict[str, object]:
     """The :data:`META_KEYS` present in one agent's yaml (``ego_speed``, ``true_ego_pos``, ``sensor``)."""
     doc = _load_yaml(Path(scenario_dir) / agent / f"{timestamp}.yaml")

@@ -52,6 +52,18 @@ def resolve(sensor, *, where: str = "params.yaml", field: str = "sensor") -> Sen
                       intensity_model=sensor.intensity_model)
 
 
+def mount_height(name: str, heights: Mapping[str, float], *, where: str = "params.yaml",
+                 field: str = "voxelize.mount_height") -> float:
+    """The LiDAR height above the road of dataset or domain ``name``: ``heights[name]`` (params'
+    ``voxelize.mount_height``) when it is there, else its sensor's in :data:`SENSORS`."""
+    if name in heights:
+        return heights[name]
+    if name in SENSORS:
+        return SENSORS[name].mount_height
+    raise TypError(where, f"{field}.{name}",
+                   f"the sensor height of dataset {name!r} (known: {sorted({*heights, *SENSORS})})", "missing")
+
+
 def elevations(table: tuple[float, ...] | ElevationRule) -> tuple[float, ...]:
     """A sensor block's beam elevations: its list, or its rule's (``uniform`` as CARLA spaces its
     channels, ``horizon_dense`` as :func:`typ.sim.sensor.horizon_dense_elevations`)."""
@@ -62,5 +74,5 @@ def elevations(table: tuple[float, ...] | ElevationRule) -> tuple[float, ...]:
     return horizon_dense_elevations(table.n, table.low, table.high, table.scale)
 
 
-__all__ = ["SENSORS", "SensorFit", "beam_residuals", "elevations", "fit_ground", "fit_sensor", "on_beam_fractions",
-           "resolve"]
+__all__ = ["SENSORS", "SensorFit", "beam_residuals", "elevations", "fit_ground", "fit_sensor", "mount_height",
+           "on_beam_fractions", "resolve"]
