@@ -131,14 +131,15 @@ def translation_scores(encoder_vq: BEVVQVAE, target_vq: BEVVQVAE, source_views: 
     n_tgt = len(target_views) if n is None else min(n, len(target_views))
     grid = target_views.grid
     gen, own_tp, own_union = [], 0, 0
-    for start in range(0, n_src, batch_size):
-        src = source_views.batch(np.arange(start, min(start + batch_size, n_src)))[0]
-        f_src = encoder_vq.encode_pre_quant(src)
-        gen += _clouds((torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5).numpy(), grid)
-        own = (torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5).numpy()
-        truth = src.numpy() > 0.5
-        own_tp += int((own & truth).sum())
-        own_union += int((own | truth).sum())
+    with distributed.on_device(encoder_vq, target_vq) as dev:
+        for start in range(0, n_src, batch_size):
+            src = source_views.batch(np.arange(start, min(start + batch_size, n_src)))[0]
+            f_src = encoder_vq.encode_pre_quant(src.to(dev))
+            gen += _clouds((torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5).cpu().numpy(), grid)
+            own = (torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5).cpu().numpy()
+            truth = src.numpy() > 0.5
+            own_tp += int((own & truth).sum())
+            own_union += int((own | truth).sum())
     real = []
     for start in range(0, n_tgt, batch_size):
         real += _clouds(target_views.batch(np.arange(start, min(start + batch_size, n_tgt)))[0].numpy() > 0.5, grid)
@@ -153,5 +154,7 @@ def discriminator_accuracy(disc: LatentDiscriminator, encoder_vq: BEVVQVAE, targ
     """Share of views D puts on the right side of 0 (0.5 = features indistinguishable)."""
     src = source_views.batch(np.arange(min(n, len(source_views))))[0]
     tgt = target_views.batch(np.arange(min(n, len(target_views))))[0]
-    correct = torch.cat([disc(target_vq.encode_pre_quant(tgt)) > 0, disc(encoder_vq.encode_pre_quant(src)) < 0])
-    return float(correct.float().mean())
+    with distributed.on_device(disc, encoder_vq, target_vq) as dev:
+        correct = torch.cat([disc(target_vq.encode_pre_quant(tgt.to(dev))) > 0,
+                             disc(encoder_vq.encode_pre_quant(src.to(dev))) < 0])
+        return float(correct.float().mean())

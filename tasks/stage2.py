@@ -149,21 +149,23 @@ class Latents:
 def encode(tuples: Tuples, x_encoder, y_encoder, ldm: LatentDiffusion, *, augment: int = 1,
            conditions: int = 1, batch_size: int = 16) -> Latents:
     """E(x_r), E_y(y_r), E(x_e') [, E(re-simulated)] under the ``augment`` symmetries, standardised
-    with the stage-1 model's statistics (x_e' and the re-simulated view as x)."""
+    with the stage-1 model's statistics (x_e' and the re-simulated view as x). Encoded on the
+    runtime device, returned on the CPU."""
     if conditions == 2 and tuples.resim is None:
         raise TypError("stage2", "conditions", "re-simulated views for conditions = 2", "none collected")
     out: dict[str, list[torch.Tensor]] = {"z0": [], "cond": [], "ego": []}
-    for k in AUGMENTS[augment]:
-        for start in range(0, len(tuples), batch_size):
-            sl = slice(start, start + batch_size)
-            grid = {name: torch.from_numpy(np.ascontiguousarray(apply_dihedral(getattr(tuples, name)[sl], k)))
-                    for name in ("x_r", "y_r", "x_e", "resim") if getattr(tuples, name) is not None}
-            out["z0"].append(ldm.normalize(x_encoder.encode_pre_quant(grid["x_r"])))
-            out["cond"].append(ldm.normalize_cond(y_encoder.encode_pre_quant(grid["y_r"])))
-            ego = [ldm.normalize(x_encoder.encode_pre_quant(grid["x_e"]))]
-            if conditions == 2:
-                ego.append(ldm.normalize(x_encoder.encode_pre_quant(grid["resim"])))
-            out["ego"].append(torch.cat(ego, dim=1))
+    with distributed.on_device(x_encoder, y_encoder, ldm) as dev:
+        for k in AUGMENTS[augment]:
+            for start in range(0, len(tuples), batch_size):
+                sl = slice(start, start + batch_size)
+                grid = {name: torch.from_numpy(np.ascontiguousarray(apply_dihedral(getattr(tuples, name)[sl], k))).to(dev)
+                        for name in ("x_r", "y_r", "x_e", "resim") if getattr(tuples, name) is not None}
+                out["z0"].append(ldm.normalize(x_encoder.encode_pre_quant(grid["x_r"])).cpu())
+                out["cond"].append(ldm.normalize_cond(y_encoder.encode_pre_quant(grid["y_r"])).cpu())
+                ego = [ldm.normalize(x_encoder.encode_pre_quant(grid["x_e"]))]
+                if conditions == 2:
+                    ego.append(ldm.normalize(x_encoder.encode_pre_quant(grid["resim"])))
+                out["ego"].append(torch.cat(ego, dim=1).cpu())
     return Latents(*(torch.cat(out[k]) for k in ("z0", "cond", "ego")))
 
 
@@ -355,10 +357,10 @@ def fit_one_stage(cfg, root: Path, tuples: Tuples, x_encoder, y_encoder, *, seed
 
     s1, s2 = one_stage_steps(cfg, root, len(tuples))
     seed_everything(seed)
-    with torch.no_grad():
-        x_lat = torch.cat([x_encoder.encode_pre_quant(torch.from_numpy(tuples.x_r[i:i + 16]))
+    with torch.no_grad(), distributed.on_device(x_encoder, y_encoder) as dev:
+        x_lat = torch.cat([x_encoder.encode_pre_quant(torch.from_numpy(tuples.x_r[i:i + 16]).to(dev)).cpu()
                            for i in range(0, len(tuples), 16)])
-        y_lat = torch.cat([y_encoder.encode_pre_quant(torch.from_numpy(tuples.y_r[i:i + 16]))
+        y_lat = torch.cat([y_encoder.encode_pre_quant(torch.from_numpy(tuples.y_r[i:i + 16]).to(dev)).cpu()
                            for i in range(0, len(tuples), 16)])
     unet = stage1.build(cfg.stage1, x_lat.shape[1], y_lat.shape[1], x_lat.shape[-1])
     unet.set_statistics(x_lat, y_lat)
