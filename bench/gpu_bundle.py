@@ -16,10 +16,11 @@ one folder:
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 import yaml
 
 from tasks.evaluate_generation import EvalSet
@@ -27,6 +28,7 @@ from tasks.genscore import true_view_stats
 from tasks.selftrain import References
 from tasks.stage2 import Tuples, load_tuples, save_tuples
 from tasks.voxel_data import ViewSet
+from typ import distributed
 from typ.config import as_dict, config_from_dict
 from typ.errors import TypError
 from typ.io import atomic_path, write_json
@@ -63,6 +65,19 @@ def overrides_of(assignments: list[str]) -> dict:
     return out
 
 
+def config_for(bundle: "Bundle", overrides: dict | None = None):
+    """bench/gpu.yaml with the bundle's overrides, then ``overrides``; the blocks that decide the
+    data must be the bundle's (:func:`data_fields`), else the bundle is stale."""
+    from typ.config import _deep_merge
+
+    cfg = config(_deep_merge(bundle.meta.get("overrides", {}), overrides or {}))
+    if json.loads(json.dumps(data_fields(cfg))) != bundle.meta["data"]:
+        raise TypError(CONFIG, "simulate/voxelize/selftrain.pseudo_references",
+                       "the data the bundle was made with (remake it: python bench/gpu_data.py)",
+                       "a different config")
+    return cfg
+
+
 def data_fields(cfg) -> dict:
     """The blocks that decide the bundle's data: a run whose config differs there needs a new bundle."""
     return {k: as_dict(getattr(cfg, k)) for k in ("simulate", "voxelize")} | {
@@ -81,10 +96,15 @@ def unpack(packed: np.ndarray, width: int) -> np.ndarray:
 
 @dataclass
 class DenseViews(ViewSet):
-    """A :class:`tasks.voxel_data.ViewSet` held as dense bool grids: x (N, C, H, W), y (N, 1, H, W)."""
+    """A :class:`tasks.voxel_data.ViewSet` held as dense bool grids: x (N, C, H, W), y (N, 1, H, W).
+
+    :meth:`batch` gathers on the runtime device, where the grids are copied once: at 256 x 256 x
+    20 a batch's float conversion and symmetries on the CPU cost more than the training step on a
+    GPU. Its tensors are on that device (the stages move their inputs there anyway)."""
 
     x: np.ndarray | None = None
     y: np.ndarray | None = None
+    _on_device: dict = field(default_factory=dict, repr=False, compare=False)
 
     def occupancy(self, index) -> np.ndarray:
         return self.x[np.asarray(index, dtype=np.int64)].astype(np.float32)
@@ -94,6 +114,29 @@ class DenseViews(ViewSet):
 
     def head(self, n: int) -> "DenseViews":
         return DenseViews(self.grid, self.keys[:n], [], self.x[:n], self.y[:n])
+
+    def batch(self, index, *, flips: np.ndarray | None = None,
+              dihedral: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`ViewSet.batch`'s tensors (same values), on the runtime device."""
+        dev = distributed.device()
+        if dev not in self._on_device:
+            self._on_device[dev] = (torch.from_numpy(self.x).to(dev), torch.from_numpy(self.y).to(dev))
+        at = torch.as_tensor(np.asarray(index, dtype=np.int64), device=dev)
+        out = []
+        for grids in self._on_device[dev]:
+            g = grids[at]
+            if flips is not None:
+                g = torch.where(torch.as_tensor(np.asarray(flips, dtype=bool), device=dev)[:, None, None, None],
+                                g.flip(-1), g)
+            if dihedral is not None:
+                g = torch.stack([_dihedral(v, int(k)) for v, k in zip(g, dihedral)])
+            out.append(g.float())
+        return out[0], out[1]
+
+
+def _dihedral(grid: torch.Tensor, k: int) -> torch.Tensor:
+    """:func:`tasks.voxel_data.apply_dihedral` on a tensor (..., H, W)."""
+    return torch.rot90(grid.flip(-1) if k >= 4 else grid, k % 4, dims=(-2, -1))
 
 
 def dense(views: ViewSet) -> DenseViews:

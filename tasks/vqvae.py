@@ -116,7 +116,7 @@ def evaluate(model: BEVVQVAE, kind: str, views: ViewSet, *, threshold: float, ba
             target = _inputs(views, kind, index)
             out = model(target.to(dev))
             preds.append((torch.sigmoid(out.logits) > threshold).cpu().numpy())
-            truths.append((target > 0.5).numpy())
+            truths.append((target > 0.5).cpu().numpy())
             counts += torch.bincount(out.indices.flatten().cpu(), minlength=len(counts)).double()
     # one IoU over every voxel of the split (not a mean of per-view IoUs)
     scores = occupancy_iou(np.concatenate(preds), np.concatenate(truths))
