@@ -13,13 +13,14 @@ what it measured. A phase that fails has its traceback kept in ``results.json``;
 Phases:
 - ``tests``: tests/test_cuda.py under pytest in a subprocess (every test, ``-x`` off) ->
   ``tests.xml`` (JUnit) and its summary;
-- ``timings``: training steps/s of each network, through its stage's own training function (the
-  generator's at bench/gpu.yaml's size, the detectors' and the pixel DDPM's at the tiny profile's;
-  batches in :data:`TIMING_BATCH`), in fp32 and bf16; sampling views/s of the whole generator
-  (encoders, adapter, DPM-Solver++ 10 or DDIM 200 steps, decoder); voxelization frames/s; and
-  CUDA's run-to-run spread with the reproducibility flags on and off. ``--device cpu --quick``
-  measures the same on the CPU with fewer steps (DDIM 200 extrapolated from 10 and 20 steps):
-  the CPU side of each ratio, read from ``--cpu`` (reports/gpu/cpu/results.json);
+- ``timings``: training steps/s and samples/s of each network, through its stage's own training
+  function (the generator's at bench/gpu.yaml's size, the detectors' and the pixel DDPM's at the
+  tiny profile's; batches in :data:`TIMING_BATCH`), in fp32 and bf16; sampling views/s of the
+  whole generator (encoders, adapter, DPM-Solver++ 10 or DDIM 200 steps, decoder);
+  voxelization frames/s; and CUDA's run-to-run spread with the reproducibility flags on and
+  off. ``--device cpu --quick`` measures the same on the CPU with fewer steps and small batches
+  (DDIM 200 extrapolated from 10 and 20 steps): the CPU side of each ratio, read from ``--cpu``
+  (reports/gpu/cpu/results.json);
 - ``train``: the generator at bench/gpu.yaml's size for the time left (bench/gpu_train.py).
 
 Writes to ``--out``: results.json, bench_gpu.md (the tables; reports/gpu/ keeps it for
@@ -53,9 +54,12 @@ from typ.io import write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PHASES = ("tests", "timings", "train")
-#: the batch each network is timed at, on both devices (the CPU side must finish in minutes)
-TIMING_BATCH = {"vqvae": 4, "stage1": 8, "stage2": 8, "adapt": 2, "fusion": 1, "ssc": 1, "ddpm": 8}
-SAMPLING_BATCH = {"cuda": 16, "cpu": 2}
+#: the batch each network is timed at: on the GPU its training batch, on the CPU a small one (a
+#: CPU's samples/s hardly depends on the batch; at the GPU's batches its side would take an hour).
+#: The ratios compare samples/s.
+TIMING_BATCH = {"cuda": {"vqvae": 16, "stage1": 32, "stage2": 32, "adapt": 8, "fusion": 1, "ssc": 1, "ddpm": 8},
+                "cpu": {"vqvae": 1, "stage1": 2, "stage2": 2, "adapt": 1, "fusion": 1, "ssc": 1, "ddpm": 2}}
+SAMPLING_BATCH = {"cuda": 16, "cpu": 1}
 #: seconds kept for the final scores and the pages, before the first probe says what they cost
 FINAL_RESERVE = {"cuda": 45.0, "cpu": 60.0}
 CPU_RESULTS = ROOT / "reports" / "gpu" / "cpu" / "results.json"
@@ -181,7 +185,7 @@ def difference_rate(train, *, warmup: int, timed: int) -> float:
     return timed / (seconds[1] - seconds[0])
 
 
-def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
+def network_timers(cfg, tiny, bundle, scratch: Path, batch: dict) -> dict:
     """name -> (batch, rate(warmup, timed) -> steps/s): each network's step through its stage."""
     import dataclasses
 
@@ -195,7 +199,7 @@ def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
         return Path(tempfile.mkdtemp(prefix=f"{name}-", dir=scratch))
 
     def vqvae_rate(warmup, timed):
-        b = TIMING_BATCH["vqvae"]
+        b = batch["vqvae"]
         block = dataclasses.replace(cfg.vqvae, batch_size=b, checkpoint_every=10 ** 6)
         views = bundle.train.head(b)
 
@@ -212,7 +216,7 @@ def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
         return [torch.randn(n, c, size, size, generator=gen) for c in (c_x, 1, c_x)]
 
     def stage1_rate(warmup, timed):
-        b = TIMING_BATCH["stage1"]
+        b = batch["stage1"]
         x, y, _ = latents(b)
 
         def train(steps, log):
@@ -221,7 +225,7 @@ def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
         return per_step_rate(train, warmup=warmup, timed=timed)
 
     def stage2_rate(warmup, timed):
-        b = TIMING_BATCH["stage2"]
+        b = batch["stage2"]
         x, y, ego = latents(b)
         ldm = stage1.build(cfg.stage1, c_x, 1, size)
         ldm.set_statistics(x, y)
@@ -235,7 +239,7 @@ def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
         return per_step_rate(train, warmup=warmup, timed=timed)
 
     def adapt_rate(warmup, timed):
-        b = TIMING_BATCH["adapt"]
+        b = batch["adapt"]
         target = vqvae.build("x", cfg.vqvae.x, bundle.train.grid.shape[2])
 
         def train(steps, log):
@@ -249,7 +253,7 @@ def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
 
     def fusion_rate(method):
         def rate(warmup, timed):
-            block = dataclasses.replace(tiny.fusion, batch_size=TIMING_BATCH["fusion"], checkpoint_every=10 ** 6)
+            block = dataclasses.replace(tiny.fusion, batch_size=batch["fusion"], checkpoint_every=10 ** 6)
             data = FusionDataset(cav, lidar_range=block.detector.lidar_range, comm_range=block.comm_range, seed=0)
             inputs = Inputs(list(data), block)
             return difference_rate(lambda steps: fusion_train.train(method, block, inputs, steps=steps,
@@ -266,10 +270,10 @@ def network_timers(cfg, tiny, bundle, scratch: Path) -> dict:
                                warmup=warmup, timed=timed)
 
     def ddpm_rate(warmup, timed):
-        block = dataclasses.replace(tiny.ddpm, batch_size=TIMING_BATCH["ddpm"], checkpoint_every=10 ** 6)
+        block = dataclasses.replace(tiny.ddpm, batch_size=batch["ddpm"], checkpoint_every=10 ** 6)
         run_cfg = block.configs[0]
         rep = ddpm.representations(block)[run_cfg.representation]
-        pixels = torch.rand(TIMING_BATCH["ddpm"], *rep.shape, generator=torch.Generator().manual_seed(0)) * 2 - 1
+        pixels = torch.rand(batch["ddpm"], *rep.shape, generator=torch.Generator().manual_seed(0)) * 2 - 1
 
         def train(steps, log):
             ddpm.train_model(dataclasses.replace(block, steps=steps), run_cfg, rep, 0, pixels, ["timing"],
@@ -289,23 +293,23 @@ def run_timings(run: Run, record: dict, cfg, bundle) -> None:
     from typ.config import config_from_dict
 
     device, quick = run.args.device, run.args.quick
-    warmup, timed = (1, 2) if quick else (3, 20)
+    warmup, timed = (1, 1) if quick else (3, 12)
     tiny = config_from_dict({"profile": "tiny"})
     scratch = Path(tempfile.mkdtemp(prefix="typ-gpu-timings-"))
     record["sizes"] = {"generator": "bench/gpu.yaml", "fusion, ssc, ddpm": "the tiny profile"}
-    record["batch"] = TIMING_BATCH
-    timers = network_timers(cfg, tiny, bundle, scratch)
+    batch = TIMING_BATCH[device]
+    timers = network_timers(cfg, tiny, bundle, scratch, batch)
     networks = record.setdefault("networks", {})
     for precision in ("fp32", "bf16"):
         distributed.setup(device, precision)
         for name, (kind, rate) in timers.items():
-            entry = networks.setdefault(name, {"batch": TIMING_BATCH[kind]})
+            entry = networks.setdefault(name, {"batch": batch[kind]})
             if run.left() < 150:
                 entry[precision] = {"skipped": "deadline"}
                 continue
             try:
                 r = rate(warmup, timed)
-                entry[precision] = {"steps_per_s": round(r, 4), "samples_per_s": round(r * TIMING_BATCH[kind], 3)}
+                entry[precision] = {"steps_per_s": round(r, 4), "samples_per_s": round(r * batch[kind], 4)}
                 run.log(f"  {name} {precision}: {r:.3f} steps/s")
             except Exception as exc:
                 entry[precision] = {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
@@ -449,12 +453,12 @@ def determinism(cfg, bundle, scratch: Path) -> dict:
     x, y = torch.randn(8, cfg.vqvae.x.latent_channels, size, size, generator=gen), torch.randn(8, 1, size, size)
 
     def unet(folder):
-        c = dataclasses.replace(cfg.stage1, epochs=20, batch_size=8, checkpoint_every=10 ** 6)
+        c = dataclasses.replace(cfg.stage1, epochs=12, batch_size=8, checkpoint_every=10 ** 6)
         return stage1.train(c, x, y, seed=0, views=8, out=folder, log_fn=lambda v, s: None)
 
     def vq(folder):
         block = dataclasses.replace(cfg.vqvae, batch_size=4, checkpoint_every=10 ** 6,
-                                    x=dataclasses.replace(cfg.vqvae.x, epochs=10))
+                                    x=dataclasses.replace(cfg.vqvae.x, epochs=6))
         return vqvae.train_one("x", block, bundle.train.head(4), out=folder, log_fn=lambda v, s: None)
 
     out = {}
@@ -462,7 +466,7 @@ def determinism(cfg, bundle, scratch: Path) -> dict:
         distributed.setup("cuda", "bf16")
         distributed.reproducible_cuda(flags)
         row = {}
-        for name, train in (("stage-1 UNet, 20 steps", unet), ("x VQ-VAE, 10 steps", vq)):
+        for name, train in (("stage-1 UNet, 12 steps", unet), ("x VQ-VAE, 6 steps", vq)):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 weights, seconds = [], []

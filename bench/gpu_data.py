@@ -120,6 +120,16 @@ def build(work: Path, out: Path, tiny: Path | None, overrides: dict) -> Path:
         tuples=tuples, references=inputs.references, pairs=pairs)
 
 
+def add_tiny(work: Path, out: Path, tiny: Path) -> Path:
+    """The tiny project's figures into an existing bundle's meta.json (the grids stay as they are)."""
+    from typ.io import write_json
+
+    meta = json.loads((out / gpu_bundle.META).read_text())
+    meta["tiny"] = tiny_figures(tiny, gpu_bundle.config(meta.get("overrides")), work)
+    write_json(out / gpu_bundle.META, meta)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--work", default="/tmp/typ-gpu-data", help="project folder the stages write to (reused)")
@@ -127,9 +137,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tiny", default=None, help="a project whose `make run` finished: its figures on the same pairs")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override bench/gpu.yaml (dotted key, YAML value; e.g. simulate.scenarios.target.train=8)")
+    ap.add_argument("--tiny-only", action="store_true",
+                    help="only (re)place the tiny project's figures in the bundle at --out (made earlier from --work)")
     args = ap.parse_args(argv)
-    folder = build(Path(args.work), Path(args.out), Path(args.tiny) if args.tiny else None,
-                   gpu_bundle.overrides_of(args.set))
+    if args.tiny_only:
+        if not args.tiny:
+            ap.error("--tiny-only needs --tiny PROJECT")
+        folder = add_tiny(Path(args.work), Path(args.out), Path(args.tiny))
+    else:
+        folder = build(Path(args.work), Path(args.out), Path(args.tiny) if args.tiny else None,
+                       gpu_bundle.overrides_of(args.set))
     sizes = {p.name: p.stat().st_size for p in sorted(folder.iterdir()) if p.is_file()}
     print(f"{folder}: " + ", ".join(f"{k} {v / 2**20:.1f} MiB" for k, v in sizes.items()))
     return 0

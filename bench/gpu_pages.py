@@ -67,18 +67,22 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
     c = (cpu or {}).get("phases", {}).get("timings", {})
     cpu_name = (cpu or {}).get("run", {}).get("device", "no CPU run given")
     g = device_label(results)
-    lines = ["## Training steps/s", "",
-             f"Each network's step through its stage's training function; {g}: {results['run']['device']}, "
+    lines = ["## Training samples/s", "",
+             f"Each network's training step through its stage's training function; {g}: {results['run']['device']}, "
              f"CPU: {cpu_name} ({(cpu or {}).get('run', {}).get('cores', '?')} cores). Generator networks at "
-             "bench/gpu.yaml's size, the detectors and the pixel DDPM at the tiny profile's; the batch is the same "
-             "on both. The last column is what a user gains moving from the CPU's best (fp32) to bf16 on the GPU.", ""]
+             "bench/gpu.yaml's size, the detectors and the pixel DDPM at the tiny profile's. Each device at its own "
+             "batch (the GPU at the training batch; a CPU's samples/s hardly depends on it): the ratios are of "
+             "samples/s (steps/s × batch). The last column is what a user gains moving from the CPU's best (fp32) "
+             "to bf16 on the GPU.", ""]
     rows = {}
-    for name, g in t.get("networks", {}).items():
+    for name, e in t.get("networks", {}).items():
         cn = c.get("networks", {}).get(name, {})
-        g32, g16, c32, c16 = (rate(g.get("fp32")), rate(g.get("bf16")), rate(cn.get("fp32")), rate(cn.get("bf16")))
-        rows[name] = {"batch": g.get("batch"), "g32": num(g32), "g16": num(g16), "c32": num(c32, 4), "c16": num(c16, 4),
-                      "r32": ratio(g32, c32), "r16": ratio(g16, c16), "r": ratio(g16, c32)}
-    lines += [table(rows, [("batch", "batch"), *ratio_columns(g)], first="network"), ""]
+        g32, g16, c32, c16 = (rate(e.get("fp32"), "samples_per_s"), rate(e.get("bf16"), "samples_per_s"),
+                              rate(cn.get("fp32"), "samples_per_s"), rate(cn.get("bf16"), "samples_per_s"))
+        rows[name] = {"gb": e.get("batch"), "cb": cn.get("batch", "–"), "g32": num(g32, 2), "g16": num(g16, 2),
+                      "c32": num(c32, 4), "c16": num(c16, 4), "r32": ratio(g32, c32), "r16": ratio(g16, c16),
+                      "r": ratio(g16, c32)}
+    lines += [table(rows, [("gb", f"{g} batch"), ("cb", "CPU batch"), *ratio_columns(g)], first="network"), ""]
     s, cs = t.get("sampling") or {}, c.get("sampling") or {}
     if s and "error" not in s:
         lines += ["## Sampling views/s", "",

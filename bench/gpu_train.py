@@ -34,7 +34,7 @@ from typ.voxel import Grid
 #: each network's share of the training time (the rest of the lease after the final scoring)
 SHARES = {"vqvae": 0.22, "stage1": 0.36, "adapt": 0.07, "stage2": 0.15, "selftrain": 0.20}
 #: probes (checkpoints scored) per network
-PROBES = {"vqvae": 4, "stage1": 3, "adapt": 0, "stage2": 2, "selftrain": 2}
+PROBES = {"vqvae": 4, "stage1": 2, "adapt": 0, "stage2": 1, "selftrain": 1}
 #: bootstrap replicates of a probe's intervals (the final scores take the evaluate block's n_boot)
 PROBE_BOOT = 100
 #: the figures a probe keeps (the final scores keep every figure)
@@ -132,11 +132,9 @@ class Probe:
         self.name, self.clock, self.every, self.root, self.score = name, clock, every, checkpoints, score
         self.curve, self.log = curve, log
         self.losses: list[float] = []
-        self.stamps: list[float] = []
 
     def __call__(self, values: dict, step: int) -> None:
         self.losses.append(next(v for k, v in values.items() if k.endswith("loss")))
-        self.stamps.append(time.perf_counter())
         self.clock.check()
         if self.score is not None and self.every and step and step % self.every == 0:
             self.probe(step)
@@ -184,7 +182,6 @@ class Trainer:
         self.cfg, self.b, self.scorer, self.work, self.log = cfg, bundle, scorer, work, log
         self.clock = TrainClock(deadline, reserve)
         self.deadline = deadline
-        self.reserve = reserve
         self.record, self.save = record, save
         self.curve = record.setdefault("curve", [])
         self.nets = record.setdefault("networks", {})
@@ -193,7 +190,7 @@ class Trainer:
     # -- budget
 
     def steps_for_share(self, name: str, rate: float, overhead: float = 0.0) -> int:
-        left = self.deadline() - self.reserve
+        left = self.deadline() - self.clock.reserve
         remaining = sum(v for k, v in SHARES.items() if k not in self.nets or k == name)
         seconds = max(0.0, left * SHARES[name] / remaining - overhead)
         return max(1, int(seconds * rate))
@@ -221,7 +218,7 @@ class Trainer:
         self.log(f"{name}: {epochs} epochs, {total} steps at {rate:.2f} steps/s calibrated "
                  f"({self.deadline():.0f} s left)")
         self.save()
-        t0 = time.perf_counter()
+        t0, trained_before = time.perf_counter(), self.clock.trained
         self.clock.start()
         try:
             model = train(epochs, every, probe)
@@ -230,10 +227,10 @@ class Trainer:
             raise
         finally:
             self.clock.pause()
-            rec.update(seconds=round(time.perf_counter() - t0, 2), steps_run=len(probe.losses),
-                       train_s_total=round(self.clock.trained, 2), last_loss=probe.losses[-1] if probe.losses else None)
-            if len(probe.stamps) > 2:
-                rec["steps_per_s"] = round((len(probe.stamps) - 1) / (probe.stamps[-1] - probe.stamps[0]), 3)
+            trained = self.clock.trained - trained_before
+            rec.update(seconds=round(time.perf_counter() - t0, 2), train_s=round(trained, 2),
+                       steps_run=len(probe.losses), last_loss=probe.losses[-1] if probe.losses else None,
+                       steps_per_s=round(len(probe.losses) / trained, 3) if trained > 0 else None)
             self.save()
         rec["status"] = "done"
         if score is not None:

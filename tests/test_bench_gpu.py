@@ -116,11 +116,12 @@ def _interval(v: float, low: float | None = None, high: float | None = None) -> 
 
 def test_pages_from_partial_results_and_the_targets(tmp_path):
     pages = load_bench("gpu_pages")
-    timings = {"networks": {"stage-1 UNet": {"batch": 8, "fp32": {"steps_per_s": 20.0}, "bf16": {"steps_per_s": 40.0}},
+    timings = {"networks": {"stage-1 UNet": {"batch": 8, "fp32": {"samples_per_s": 20.0},
+                                             "bf16": {"samples_per_s": 40.0}},
                             "AttFuse": {"batch": 1, "fp32": {"error": "boom"}}}}
     cpu = {"run": {"device": "CPU: test", "cores": 2},
-           "phases": {"timings": {"networks": {"stage-1 UNet": {"fp32": {"steps_per_s": 0.5},
-                                                                "bf16": {"steps_per_s": 0.25}}}}}}
+           "phases": {"timings": {"networks": {"stage-1 UNet": {"batch": 2, "fp32": {"samples_per_s": 0.5},
+                                                                "bf16": {"samples_per_s": 0.25}}}}}}
     figures = {"iou": _interval(0.5), "iou_above_ground": _interval(0.3), "object_hit_rate": _interval(0.9),
                "jsd_r2dm": _interval(0.2)}
     train = {"final": {"vqvae_x": {"iou": 0.82}, "typ": figures}, "config": {"voxelize": {"grid": {"shape": [256, 256, 20]}}},
@@ -133,8 +134,8 @@ def test_pages_from_partial_results_and_the_targets(tmp_path):
     results = _results(tests={"status": "running"}, timings=timings, train=train)
     pages.write(tmp_path, results, cpu)
     page = (tmp_path / "bench_gpu.md").read_text()
-    assert "| stage-1 UNet | 8 | 20.000 | 40.000 | 0.5000 | 0.2500 | 40.0× | 160.0× | 80.0× |" in page
-    assert "| AttFuse | 1 | – | – | – | – | – | – | – |" in page
+    assert "| stage-1 UNet | 8 | 2 | 20.00 | 40.00 | 0.5000 | 0.2500 | 40.0× | 160.0× | 80.0× |" in page
+    assert "| AttFuse | 1 | – | – | – | – | – | – | – | – |" in page
     assert "- **x VQ-VAE reconstruction IoU 0.820: target ≥ 0.80 met**" in page
     assert "- **TYP above-ground IoU 0.300 [0.290, 0.310] against the naive copy's 0.200 [0.190, 0.210]: " \
            "above (intervals apart)**" in page
