@@ -110,14 +110,25 @@ def header(args) -> dict:
     import torch
 
     cuda = args.device == "cuda" and torch.cuda.is_available()
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
-    return {"command": "python3 " + " ".join(shlex.quote(a) for a in sys.argv), "commit": commit or None,
-            "dirty": bool(dirty), "device": torch.cuda.get_device_name() if cuda else f"CPU: {cpu_model()}",
+    commit, dirty = args.commit or git("rev-parse", "HEAD"), None
+    if not args.commit:
+        status = git("status", "--porcelain", "--untracked-files=no")
+        dirty = None if status is None else bool(status)
+    return {"command": "python3 " + " ".join(shlex.quote(a) for a in sys.argv), "commit": commit,
+            "dirty": dirty, "device": torch.cuda.get_device_name() if cuda else f"CPU: {cpu_model()}",
             "device_type": "cuda" if cuda else "cpu", "cores": os.cpu_count(), "torch": torch.__version__,
             "cuda": torch.version.cuda, "python": platform.python_version(), "numpy": np.__version__,
             "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "minutes": args.minutes, "quick": args.quick}
+
+
+def git(*args: str) -> str | None:
+    """``git <args>`` in the checkout, stripped; None where there is no git or no repository
+    (the GPU machine gets a copy of the working tree: pass --commit there)."""
+    try:
+        proc = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return proc.stdout.strip() if proc.returncode == 0 else None
 
 
 def cpu_model() -> str:
@@ -557,6 +568,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cpu", default=str(CPU_RESULTS), help="a --device cpu run's results.json, for the ratios")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override bench/gpu.yaml over the bundle's own overrides (e.g. vqvae.batch_size=4)")
+    ap.add_argument("--commit", default=None, help="the commit the working tree is (where it has no .git)")
     args = ap.parse_args(argv)
     phases = [p for p in args.phases.split(",") if p]
     unknown = sorted(set(phases) - set(PHASES))

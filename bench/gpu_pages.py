@@ -238,7 +238,8 @@ def readme(results: dict) -> str:
              "Made by one run of `bench/gpu.py` (its docstring says what each phase does) on the data "
              "`bench/gpu_data.py` made on the CPU; the tables are in bench_gpu.md, every number in results.json.", "",
              f"- command: `{run['command']}`",
-             f"- commit: {run.get('commit') or '?'}{' with uncommitted changes' if run.get('dirty') else ''}",
+             f"- commit: {run.get('commit') or 'unknown (no git there: pass --commit)'}"
+             f"{' with uncommitted changes' if run.get('dirty') else ''}",
              f"- device: {run['device']} ({run.get('cores')} CPU cores), torch {run['torch']}, CUDA {run.get('cuda')}, "
              f"Python {run['python']}, numpy {run['numpy']}",
              f"- started {run['started']}; wall time {run.get('wall_s')} s of a {run['minutes']}-minute deadline", "",
