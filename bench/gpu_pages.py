@@ -263,6 +263,10 @@ def readme(results: dict) -> str:
             missing.append(f"- training of {name}: {r.get('status')}")
     if tr.get("cut"):
         missing.append(f"- {tr['cut']}")
+    missing += [f"- final score of {name}: {v['error']}" for name, v in (tr.get("final") or {}).items()
+                if isinstance(v, dict) and "error" in v]
+    missing += [f"- probe of {p['network']} at step {p['step']}: {p['error']}" for p in tr.get("curve") or []
+                if "error" in p]
     lines += ["## What could not be done in the lease", "", *(missing or ["- (nothing recorded)"]), ""]
     return "\n".join(lines) + "\n"
 

@@ -142,15 +142,17 @@ class Probe:
     def probe(self, step: int, state: dict | None = None) -> None:
         self.clock.pause()
         t0 = time.perf_counter()
+        point = {"network": self.name, "step": step, "train_s": round(self.clock.trained, 2)}
         try:
-            if state is None:
-                state = newest_checkpoint(self.root)
-            figures = self.score(state)
-            self.curve.append({"network": self.name, "step": step, "train_s": round(self.clock.trained, 2),
-                               "probe_s": round(time.perf_counter() - t0, 2), **figures})
+            point |= self.score(newest_checkpoint(self.root) if state is None else state)
             self.log(f"  probe {self.name} step {step}: " + ", ".join(
-                f"{k} {v:.3f}" for k, v in figures.items() if isinstance(v, float)))
+                f"{k} {v:.3f}" for k, v in point.items() if isinstance(v, float) and k != "train_s"))
+        except Exception as exc:   # a probe that cannot score (e.g. nothing generated yet) is a gap, not a stop
+            point["error"] = f"{type(exc).__name__}: {exc}"
+            self.log(f"  probe {self.name} step {step} failed: {point['error']}")
         finally:
+            point["probe_s"] = round(time.perf_counter() - t0, 2)
+            self.curve.append(point)
             self.clock.start()
 
 
@@ -411,12 +413,18 @@ def run_phase(cfg, bundle, scorer: Scorer, *, work: Path, deadline: Callable[[],
         record["cut"] = f"the deadline stopped training at {cut[0] if cut else 'the start of the next network'}"
         log(record["cut"])
     final = record.setdefault("final", {})
-    if x_vq is not None:
-        final["vqvae_x"] = vqvae.evaluate(x_vq, "x", t.pairs_views, threshold=cfg.vqvae.threshold, batch_size=8)
-        save()
-    for name, pipe in pipes.items():
-        final[name] = scorer.pipeline(pipe, n_boot=cfg.evaluate.n_boot)
-        log(f"final {name}: " + ", ".join(f"{k} {final[name][k]['value']:.3f}" for k in CURVE_FIGURES))
+    scores = {"vqvae_x": lambda: vqvae.evaluate(x_vq, "x", t.pairs_views, threshold=cfg.vqvae.threshold, batch_size=8)}
+    scores |= {name: (lambda p=pipe: scorer.pipeline(p, n_boot=cfg.evaluate.n_boot)) for name, pipe in pipes.items()}
+    for name, score in scores.items():
+        if name == "vqvae_x" and x_vq is None:
+            continue
+        try:
+            final[name] = score()
+            log(f"final {name}: " + ", ".join(f"{k} {v['value'] if isinstance(v, dict) else v:.3f}"
+                                              for k, v in final[name].items() if k in (*CURVE_FIGURES, "iou")))
+        except Exception as exc:
+            final[name] = {"error": f"{type(exc).__name__}: {exc}"}
+            log(f"final {name} failed: {final[name]['error']}")
         save()
     record["train_s"] = round(t.clock.trained, 2)
     return pipes.get("typ") or pipes.get("disc") or pipes.get("stage1_only")

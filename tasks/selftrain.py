@@ -227,7 +227,8 @@ def enhance(v: Variant, cfg, data: Inputs, encoders: Encoders, base_pipe: TYPPip
         parts.append(stage2.encode(data.dummy, encoders.target_x, encoders.y, ldm, augment=augment,
                                    conditions=v.conditions))
         n_views += len(data.dummy)
-    adapter = stage2.fit_adapter(copy.deepcopy(base_adapter), ldm, schedule, T, concat(*parts),
+    # fine-tuned from stage 2's weights, trainable whatever flags they came with (an EMA copy is frozen)
+    adapter = stage2.fit_adapter(copy.deepcopy(base_adapter).requires_grad_(True), ldm, schedule, T, concat(*parts),
                                  name=f"selftrain.seed_{seed}.{v.name}",
                                  settings=stage2.settings_of(block, seed, cfg.stage1.min_snr), views=n_views,
                                  key_extra={**training_fields(block), "variant": v.name}, out=out, log_fn=log_fn)
