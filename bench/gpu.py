@@ -118,7 +118,8 @@ def header(args) -> dict:
             "dirty": dirty, "device": torch.cuda.get_device_name() if cuda else f"CPU: {cpu_model()}",
             "device_type": "cuda" if cuda else "cpu", "cores": os.cpu_count(), "torch": torch.__version__,
             "cuda": torch.version.cuda, "python": platform.python_version(), "numpy": np.__version__,
-            "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "minutes": args.minutes, "quick": args.quick}
+            "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "minutes": args.minutes, "quick": args.quick,
+            "torch_threads": torch.get_num_threads(), "load_average_1min": round(os.getloadavg()[0], 2)}
 
 
 def git(*args: str) -> str | None:

@@ -240,8 +240,9 @@ def readme(results: dict) -> str:
              f"- command: `{run['command']}`",
              f"- commit: {run.get('commit') or 'unknown (no git there: pass --commit)'}"
              f"{' with uncommitted changes' if run.get('dirty') else ''}",
-             f"- device: {run['device']} ({run.get('cores')} CPU cores), torch {run['torch']}, CUDA {run.get('cuda')}, "
-             f"Python {run['python']}, numpy {run['numpy']}",
+             f"- device: {run['device']} ({run.get('cores')} CPU cores, torch on {run.get('torch_threads')} threads, "
+             f"1-minute load average {run.get('load_average_1min')} at the start), torch {run['torch']}, "
+             f"CUDA {run.get('cuda')}, Python {run['python']}, numpy {run['numpy']}",
              f"- started {run['started']}; wall time {run.get('wall_s')} s of a {run['minutes']}-minute deadline", "",
              "## Phases", ""]
     rows = {name: {"s": p.get("status"), "t": p.get("seconds", "–"),
