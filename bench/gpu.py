@@ -188,7 +188,9 @@ def per_step_rate(train, *, warmup: int, timed: int) -> float:
 
 def difference_rate(train, *, warmup: int, timed: int) -> float:
     """Steps/s from two runs of ``train(steps)`` (``warmup`` and ``warmup + timed`` steps): for the
-    stages that do not log every step; their set-up cancels."""
+    stages that do not log every step; their set-up cancels. Their networks are the tiny profile's:
+    at least 2 + 6 steps, so that one slow step does not make the figure."""
+    warmup, timed = max(warmup, 2), max(timed, 6)
     seconds = []
     for steps in (warmup, warmup + timed):
         t0 = time.perf_counter()
@@ -305,7 +307,7 @@ def run_timings(run: Run, record: dict, cfg, bundle) -> None:
     from typ.config import config_from_dict
 
     device, quick = run.args.device, run.args.quick
-    warmup, timed = (1, 1) if quick else (3, 12)
+    warmup, timed = (1, 2) if quick else (3, 12)
     tiny = config_from_dict({"profile": "tiny"})
     scratch = Path(tempfile.mkdtemp(prefix="typ-gpu-timings-"))
     record["sizes"] = {"generator": "bench/gpu.yaml", "fusion, ssc, ddpm": "the tiny profile"}
