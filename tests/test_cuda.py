@@ -370,6 +370,21 @@ def test_bf16_losses_are_finite_and_near_fp32(tmp_path, stage):
     assert losses["bf16"][0] == pytest.approx(losses["fp32"][0], rel=BF16_RTOL)
 
 
+@pytest.mark.skipif(ACCELERATOR != "cuda", reason="CUDA's generator")
+def test_checkpoints_keep_the_cuda_generator():
+    """What a resumed run restores (tasks.training.rng_state): the device's generator too, from
+    which the EMA quantizer's k-means and dead-code restarts draw."""
+    from tasks.training import rng_state, set_rng_state
+
+    with runtime("cuda"):
+        torch.cuda.manual_seed(3)
+        state = rng_state()
+        first = torch.rand(4, device="cuda")
+        torch.cuda.manual_seed(4)
+        set_rng_state(state)
+        assert "cuda" in state and torch.equal(torch.rand(4, device="cuda"), first)
+
+
 @pytest.mark.skipif(ACCELERATOR != "cuda", reason="CUDA's flags")
 def test_setup_on_cuda_asks_for_reproducible_arithmetic():
     with runtime("cuda"):
