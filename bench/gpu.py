@@ -61,7 +61,11 @@ TIMING_BATCH = {"cuda": {"vqvae": 16, "stage1": 32, "stage2": 32, "adapt": 8, "f
                 "cpu": {"vqvae": 1, "stage1": 2, "stage2": 2, "adapt": 1, "fusion": 1, "ssc": 1, "ddpm": 2}}
 SAMPLING_BATCH = {"cuda": 16, "cpu": 1}
 #: seconds kept for the final scores and the pages, before the first probe says what they cost
+#: (at most a sixth of the run)
 FINAL_RESERVE = {"cuda": 45.0, "cpu": 60.0}
+#: the share of --minutes, from the start, by which each phase ends (what is left is then
+#: recorded as skipped); training has the rest
+PHASE_END = {"tests": 0.2, "timings": 0.42}
 CPU_RESULTS = ROOT / "reports" / "gpu" / "cpu" / "results.json"
 
 
@@ -79,6 +83,10 @@ class Run:
 
     def left(self) -> float:
         return self.end - time.monotonic()
+
+    def phase_left(self, name: str) -> float:
+        """Seconds until ``name`` must end (:data:`PHASE_END`)."""
+        return self.t0 + PHASE_END[name] * (self.end - self.t0) - time.monotonic()
 
     def log(self, line: str) -> None:
         stamp = f"[{time.monotonic() - self.t0:6.1f} s] {line}"
@@ -143,12 +151,14 @@ def cpu_model() -> str:
 
 def run_tests(run: Run, record: dict) -> None:
     xml = run.out / "tests.xml"
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", "-rfEs",
-           "tests/test_cuda.py", f"--junitxml={xml}"]
-    timeout = max(10.0, min(150.0, run.left() - 60.0))
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfEs", "tests/test_cuda.py",
+           f"--junitxml={xml}"]
+    timeout = max(10.0, run.phase_left("tests"))
     record["command"] = " ".join(cmd[1:])
+    # no plugin of the machine's (pytest-cov, -timeout, -benchmark ...) between the tests and this run
+    env = {**os.environ, "PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}
     try:
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
         output, record["returncode"] = proc.stdout + proc.stderr, proc.returncode
     except subprocess.TimeoutExpired as exc:
         output, record["returncode"] = f"{exc.stdout or ''}{exc.stderr or ''}\nstopped after {timeout:.0f} s", None
@@ -314,12 +324,12 @@ def run_timings(run: Run, record: dict, cfg, bundle) -> None:
     batch = TIMING_BATCH[device]
     timers = network_timers(cfg, tiny, bundle, scratch, batch)
     networks = record.setdefault("networks", {})
-    for precision in ("fp32", "bf16"):
-        distributed.setup(device, precision)
-        for name, (kind, rate) in timers.items():
-            entry = networks.setdefault(name, {"batch": batch[kind]})
-            if run.left() < 150:
-                entry[precision] = {"skipped": "deadline"}
+    for name, (kind, rate) in timers.items():
+        entry = networks.setdefault(name, {"batch": batch[kind]})
+        for precision in ("fp32", "bf16"):
+            distributed.setup(device, precision)
+            if run.phase_left("timings") < 0:
+                entry[precision] = {"skipped": "the phase's time was up"}
                 continue
             try:
                 r = rate(warmup, timed)
@@ -330,13 +340,16 @@ def run_timings(run: Run, record: dict, cfg, bundle) -> None:
                 run.log(f"  {name} {precision} failed: {type(exc).__name__}: {exc}")
             run.save()
     distributed.setup(device, "fp32")
-    with run_step(run, record, "sampling"):
-        record["sampling"] = sampling_rates(run, cfg, bundle, device, quick)
-    with run_step(run, record, "voxelize"):
-        record["voxelize"] = voxelize_rates(run, device, quick)
+    steps = {"sampling": lambda: sampling_rates(run, cfg, bundle, device, quick),
+             "voxelize": lambda: voxelize_rates(run, device, quick)}
     if device == "cuda":
-        with run_step(run, record, "determinism"):
-            record["determinism"] = determinism(cfg, bundle, scratch)
+        steps["determinism"] = lambda: determinism(cfg, bundle, scratch)
+    for name, measure in steps.items():
+        if run.phase_left("timings") < 0:
+            record[name] = {"skipped": "the phase's time was up"}
+            continue
+        with run_step(run, record, name):
+            record[name] = measure()
     distributed.setup(device, "fp32")
 
 
@@ -521,7 +534,8 @@ def run_training(run: Run, record: dict, cfg, bundle, pool) -> None:
     scorer = gpu_train.Scorer(bundle.pairs, PointStats.from_dict(bundle.meta["stats"]), pool)
     work = Path(tempfile.mkdtemp(prefix="typ-gpu-train-"))
     generator = gpu_train.run_phase(cfg, bundle, scorer, work=work, deadline=run.left,
-                                    reserve=FINAL_RESERVE[run.args.device], log=run.log, record=record, save=run.save)
+                                    reserve=min(FINAL_RESERVE[run.args.device], 10.0 * run.args.minutes),
+                                    log=run.log, record=record, save=run.save)
     if generator is not None:
         save_generator(run, generator, record)
     if run.args.device == "cuda":

@@ -84,7 +84,7 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
                       "r": ratio(g16, c32)}
     lines += [table(rows, [("gb", f"{g} batch"), ("cb", "CPU batch"), *ratio_columns(g)], first="network"), ""]
     s, cs = t.get("sampling") or {}, c.get("sampling") or {}
-    if s and "error" not in s:
+    if s and "error" not in s and "skipped" not in s:
         lines += ["## Sampling views/s", "",
                   f"The whole generator at bench/gpu.yaml's size (x_e' encoded, adapter, reverse process, x decoded), "
                   f"a batch of {s.get('batch')} in this run and {cs.get('batch', '?')} on the CPU"
@@ -98,7 +98,7 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
                              "r32": ratio(g32, c32), "r16": ratio(g16, c16), "r": ratio(g16, c32)}
         lines += [table(rows, ratio_columns(g), first="sampler"), ""]
     v, cv = t.get("voxelize") or {}, c.get("voxelize") or {}
-    if v and "error" not in v:
+    if v and "error" not in v and "skipped" not in v:
         lines += ["## Voxelization frames/s", "",
                   f"{v.get('points')}-point synthetic scans (bench/voxelize.py's). typ.voxel.voxelize runs on the "
                   "CPU (numba) on either machine; the same bins in torch run on the device ('voxels differing': "
@@ -116,7 +116,7 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
                                ("typ_c", "typ, this CPU"), ("torch_c", "torch, this CPU"),
                                ("r", "torch on GPU / typ here"), ("diff", "voxels differing")], first="grid"), ""]
     d = t.get("determinism") or {}
-    if d and "error" not in d:
+    if d and "error" not in d and "skipped" not in d:
         lines += ["## Run-to-run spread on CUDA", "",
                   "Two identical trainings (same seed, same batches), with typ's reproducibility flags "
                   "(typ.distributed.reproducible_cuda: no TF32, deterministic cuDNN and kernels) and without.", ""]
@@ -256,8 +256,8 @@ def readme(results: dict) -> str:
             if "error" in e or "skipped" in e:
                 missing.append(f"- timing of {name} in {precision}: {e.get('error') or e.get('skipped')}")
     for part in ("sampling", "voxelize", "determinism"):
-        if isinstance(t.get(part), dict) and "error" in t[part]:
-            missing.append(f"- {part}: {t[part]['error']}")
+        if isinstance(t.get(part), dict) and ("error" in t[part] or "skipped" in t[part]):
+            missing.append(f"- {part}: {t[part].get('error') or t[part]['skipped']}")
     tr = phases.get("train", {})
     for name, r in (tr.get("networks") or {}).items():
         if r.get("status") != "done":
