@@ -567,7 +567,8 @@ def write_pages(run: Run) -> None:
     import gpu_pages
 
     try:
-        cpu = json.loads(Path(run.args.cpu).read_text()) if run.args.cpu and Path(run.args.cpu).is_file() else None
+        cpu = (json.loads(Path(run.args.cpu).read_text()) if run.args.cpu and Path(run.args.cpu).is_file()
+               and run.results["run"]["device_type"] == "cuda" else None)   # a CPU run is the CPU side itself
         gpu_pages.write(run.out, run.results, cpu)
     except Exception as exc:   # the pages are a view of results.json, which is already saved
         run.log(f"pages not written: {type(exc).__name__}: {exc}")

@@ -55,9 +55,13 @@ def rate(entry: dict | None, key: str = "steps_per_s") -> float | None:
     return entry.get(key) if isinstance(entry.get(key), (int, float)) else None
 
 
-def ratio_columns(g: str) -> list[tuple[str, str]]:
-    return [("g32", f"{g} fp32"), ("g16", f"{g} bf16"), ("c32", "CPU fp32"), ("c16", "CPU bf16"),
-            ("r32", f"{g}/CPU fp32"), ("r16", f"{g}/CPU bf16"), ("r", f"{g} bf16 / CPU fp32")]
+def ratio_columns(g: str, cpu: dict | None) -> list[tuple[str, str]]:
+    """The run's fp32 and bf16 columns, and with a CPU run to compare with, its and the ratios."""
+    own = [("g32", f"{g} fp32"), ("g16", f"{g} bf16")]
+    if cpu is None:
+        return own
+    return own + [("c32", "CPU fp32"), ("c16", "CPU bf16"), ("r32", f"{g}/CPU fp32"), ("r16", f"{g}/CPU bf16"),
+                  ("r", f"{g} bf16 / CPU fp32")]
 
 
 def timing_section(results: dict, cpu: dict | None) -> list[str]:
@@ -65,15 +69,17 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
     if not t:
         return []
     c = (cpu or {}).get("phases", {}).get("timings", {})
-    cpu_name = (cpu or {}).get("run", {}).get("device", "no CPU run given")
+    cpu_name = (cpu or {}).get("run", {}).get("device")
     g = device_label(results)
+    against = (f"; CPU: {cpu_name} ({cpu['run'].get('cores', '?')} cores, 1-minute load average "
+               f"{cpu['run'].get('load_average_1min', '?')} at its start). Each device at its own batch (the GPU at "
+               "the training batch; a CPU's samples/s hardly depends on it): the ratios are of samples/s (steps/s × "
+               "batch). The last column is what a user gains moving from the CPU's best (fp32) to bf16 on the GPU"
+               if cpu else "")
     lines = ["## Training samples/s", "",
-             f"Each network's training step through its stage's training function; {g}: {results['run']['device']}, "
-             f"CPU: {cpu_name} ({(cpu or {}).get('run', {}).get('cores', '?')} cores). Generator networks at "
-             "bench/gpu.yaml's size, the detectors and the pixel DDPM at the tiny profile's. Each device at its own "
-             "batch (the GPU at the training batch; a CPU's samples/s hardly depends on it): the ratios are of "
-             "samples/s (steps/s × batch). The last column is what a user gains moving from the CPU's best (fp32) "
-             "to bf16 on the GPU.", ""]
+             f"Each network's training step through its stage's training function; {g}: {results['run']['device']}"
+             f"{against}. Generator networks at bench/gpu.yaml's size, the detectors and the pixel DDPM at the tiny "
+             "profile's.", ""]
     rows = {}
     for name, e in t.get("networks", {}).items():
         cn = c.get("networks", {}).get(name, {})
@@ -82,21 +88,22 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
         rows[name] = {"gb": e.get("batch"), "cb": cn.get("batch", "–"), "g32": num(g32, 2), "g16": num(g16, 2),
                       "c32": num(c32, 4), "c16": num(c16, 4), "r32": ratio(g32, c32), "r16": ratio(g16, c16),
                       "r": ratio(g16, c32)}
-    lines += [table(rows, [("gb", f"{g} batch"), ("cb", "CPU batch"), *ratio_columns(g)], first="network"), ""]
+    batches = [("gb", f"{g} batch")] + ([("cb", "CPU batch")] if cpu else [])
+    lines += [table(rows, batches + ratio_columns(g, cpu), first="network"), ""]
     s, cs = t.get("sampling") or {}, c.get("sampling") or {}
     if s and "error" not in s and "skipped" not in s:
         lines += ["## Sampling views/s", "",
                   f"The whole generator at bench/gpu.yaml's size (x_e' encoded, adapter, reverse process, x decoded), "
-                  f"a batch of {s.get('batch')} in this run and {cs.get('batch', '?')} on the CPU"
-                  + (" (the CPU's DDIM 200 extrapolated from 10 and 20 steps)" if (cs.get("fp32") or {}).get(
-                      "ddim 200 extrapolated") else "") + ".", ""]
+                  f"a batch of {s.get('batch')} in this run" + (f" and {cs.get('batch')} on the CPU" if cs else "")
+                  + (" (DDIM 200 extrapolated from 10 and 20 steps" + (" on the CPU)" if cs else ")")
+                     if ((cs or s).get("fp32") or {}).get("ddim 200 extrapolated") else "") + ".", ""]
         rows = {}
         for sampler in ("dpmsolver++ 10", "ddim 200"):
             g32, g16 = (s.get("fp32") or {}).get(sampler), (s.get("bf16") or {}).get(sampler)
             c32, c16 = (cs.get("fp32") or {}).get(sampler), (cs.get("bf16") or {}).get(sampler)
             rows[sampler] = {"g32": num(g32), "g16": num(g16), "c32": num(c32, 4), "c16": num(c16, 4),
                              "r32": ratio(g32, c32), "r16": ratio(g16, c16), "r": ratio(g16, c32)}
-        lines += [table(rows, ratio_columns(g), first="sampler"), ""]
+        lines += [table(rows, ratio_columns(g, cpu), first="sampler"), ""]
     v, cv = t.get("voxelize") or {}, c.get("voxelize") or {}
     if v and "error" not in v and "skipped" not in v:
         lines += ["## Voxelization frames/s", "",
