@@ -229,7 +229,8 @@ def training_section(results: dict) -> list[str]:
 
 def bench_page(results: dict, cpu: dict | None) -> str:
     run = results["run"]
-    lines = ["# typ on a GPU: throughput beside the CPU, and the generator at GPU size", "",
+    lines = ["# typ's GPU bench, its CPU side" if run.get("device_type") == "cpu" else
+             "# typ on a GPU: throughput beside the CPU, and the generator at GPU size", "",
              f"`{run['command']}` at {run.get('commit') or '?'}{' (uncommitted changes)' if run.get('dirty') else ''}, "
              f"{run['device']}, torch {run['torch']}, {run['started']}, {run.get('wall_s')} s. "
              "How it was made and what it could not do: README.md beside this page.", ""]
@@ -241,9 +242,13 @@ def bench_page(results: dict, cpu: dict | None) -> str:
 def readme(results: dict) -> str:
     run = results["run"]
     phases = results["phases"]
-    lines = ["# typ on a GPU: how this folder was made", "",
+    cpu_side = run.get("device_type") == "cpu"
+    lines = ["# typ's GPU bench, its CPU side: how this folder was made" if cpu_side else
+             "# typ on a GPU: how this folder was made", "",
              "Made by one run of `bench/gpu.py` (its docstring says what each phase does) on the data "
-             "`bench/gpu_data.py` made on the CPU; the tables are in bench_gpu.md, every number in results.json.", "",
+             "`bench/gpu_data.py` made on the CPU; the tables are in bench_gpu.md, every number in results.json."
+             + (" A `--device cpu` run: the CPU side of the GPU run's ratios (reports/gpu/bench_gpu.md reads its "
+                "results.json), each network at a small batch." if cpu_side else ""), "",
              f"- command: `{run['command']}`",
              f"- commit: {run.get('commit') or 'unknown (no git there: pass --commit)'}"
              f"{' with uncommitted changes' if run.get('dirty') else ''}",
@@ -275,7 +280,8 @@ def readme(results: dict) -> str:
                 if isinstance(v, dict) and "error" in v]
     missing += [f"- probe of {p['network']} at step {p['step']}: {p['error']}" for p in tr.get("curve") or []
                 if "error" in p]
-    lines += ["## What could not be done in the lease", "", *(missing or ["- (nothing recorded)"]), ""]
+    lines += [f"## What could not be done in the {'run' if cpu_side else 'lease'}", "",
+              *(missing or ["- (nothing recorded)"]), ""]
     return "\n".join(lines) + "\n"
 
 
