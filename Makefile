@@ -17,7 +17,7 @@ export DVC_NO_ANALYTICS := 1
 export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlruns.db
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: run test bench serve setup clean
+.PHONY: run test bench gpu-data serve setup clean
 
 setup: $(STAMP)
 
@@ -65,7 +65,8 @@ test: $(STAMP)
 
 # sampling needs the trained models of `make run` (artifacts/), pipeline its metrics (the
 # default data's skipping; its dvc runs are in a throwaway copy); voxelize and pcd_lzf need nothing.
-# report.py gathers every reports/bench_*.md into reports/bench.md.
+# report.py gathers every reports/bench_*.md into reports/bench.md, with the pages of
+# reports/gpu/ (bench/gpu.py on a GPU machine; not rerun here).
 bench: $(STAMP)
 	$(BIN)/python bench/voxelize.py --out reports
 	$(BIN)/python bench/pcd_lzf.py --out reports
@@ -74,6 +75,13 @@ bench: $(STAMP)
 	$(BIN)/python bench/pipeline.py --out reports
 	$(BIN)/python bench/ddp.py --out reports
 	$(BIN)/python bench/report.py --out reports
+
+# bench/gpu.py's data (.gpu/, carried to the GPU machine) and its CPU side (reports/gpu/cpu/):
+# simulated, voxelized and re-simulated here at bench/gpu.yaml's size, with this project's tiny
+# figures on the same pairs (after `make run`)
+gpu-data: $(STAMP)
+	$(BIN)/python bench/gpu_data.py --out .gpu --tiny .
+	$(BIN)/python bench/gpu.py --device cpu --quick --phases timings --bundle .gpu --out reports/gpu/cpu
 
 # the scheduled Prefect deployments on a local server (http://127.0.0.1:4200), or on the
 # server / Prefect Cloud that PREFECT_API_URL names; Ctrl-C stops both

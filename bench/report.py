@@ -1,4 +1,5 @@
-"""``reports/bench.md``: every ``reports/bench_*.md`` on one page, under a header naming the machine.
+"""``reports/bench.md``: every ``reports/bench_*.md`` (and ``reports/*/bench_*.md``) on one page,
+under a header naming the machine.
 
     python bench/report.py [--out reports]
 
@@ -73,18 +74,25 @@ def digest(markdown: str) -> str:
 
 
 def aggregate(folder: Path, info: dict) -> str:
-    """The text of ``<folder>/bench.md`` from the bench pages found in ``folder``."""
+    """The text of ``<folder>/bench.md`` from the bench pages found in ``folder``, then those of its
+    sub-folders (benches run on another machine, e.g. ``gpu/`` from bench/gpu.py: their page names
+    the machine and their folder's README how the run was made; ``make bench`` does not rerun them)."""
     lines = ["# typ benchmarks", "",
              f"Machine: {machine_line(info)}. Every figure below is a ratio or a curve measured side by side "
-             "in one run of its bench; absolute times are this machine's. `make bench` regenerates this page.", ""]
-    pages = sorted(p for p in folder.glob("bench_*.md"))
+             "in one run of its bench; absolute times are this machine's, except on the pages of a sub-folder, "
+             "measured on the machine that page names. `make bench` regenerates this page.", ""]
+    pages = sorted(folder.glob("bench_*.md")) + sorted(folder.glob("*/bench_*.md"))
     if not pages:
         lines.append("No bench pages yet: run `make bench`.")
     for page in pages:
         text = page.read_text(encoding="utf-8")
         title = next((ln[2:].strip() for ln in text.splitlines() if ln.startswith("# ")), page.stem)
         plot = page.with_suffix(".png")
-        links = f"[page]({page.name})" + (f", [plot]({plot.name})" if plot.exists() else "")
+        links = f"[page]({page.relative_to(folder).as_posix()})"
+        if plot.exists():
+            links += f", [plot]({plot.relative_to(folder).as_posix()})"
+        if page.parent != folder and (page.parent / "README.md").is_file():
+            links += f", [how it was made]({page.parent.relative_to(folder).as_posix()}/README.md)"
         lines += [f"## {title}", "", f"{page.stem} — {links}", ""]
         body = digest(text)
         lines += [body, ""] if body else ["(no tables)", ""]

@@ -170,14 +170,15 @@ def translation_scores(encoder_vq: BEVVQVAE, target_vq: BEVVQVAE, source_views: 
     n_tgt = len(target_views) if n is None else min(n, len(target_views))
     grid = target_views.grid
     gen, own_tp, own_union = [], 0, 0
-    for start in range(0, n_src, batch_size):
-        src = source_views.batch(np.arange(start, min(start + batch_size, n_src)))[0]
-        f_src = encoder_vq.encode_pre_quant(src)
-        gen += _clouds((torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5).numpy(), grid)
-        own = (torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5).numpy()
-        truth = src.numpy() > 0.5
-        own_tp += int((own & truth).sum())
-        own_union += int((own | truth).sum())
+    with distributed.on_device(encoder_vq, target_vq) as dev:
+        for start in range(0, n_src, batch_size):
+            src = source_views.batch(np.arange(start, min(start + batch_size, n_src)))[0]
+            f_src = encoder_vq.encode_pre_quant(src.to(dev))
+            gen += _clouds((torch.sigmoid(target_vq.decode_latents(f_src)) > 0.5).cpu().numpy(), grid)
+            own = (torch.sigmoid(encoder_vq.decode_latents(f_src)) > 0.5).cpu().numpy()
+            truth = src.numpy() > 0.5
+            own_tp += int((own & truth).sum())
+            own_union += int((own | truth).sum())
     real = []
     for start in range(0, n_tgt, batch_size):
         real += _clouds(target_views.batch(np.arange(start, min(start + batch_size, n_tgt)))[0].numpy() > 0.5, grid)
@@ -192,4 +193,5 @@ def discriminator_accuracy(disc: LatentDiscriminator, encoder_vq: BEVVQVAE, targ
     """:func:`batch_accuracy` on the first ``n`` views of each set, source views through ``encoder_vq``."""
     src = source_views.batch(np.arange(min(n, len(source_views))))[0]
     tgt = target_views.batch(np.arange(min(n, len(target_views))))[0]
-    return batch_accuracy(disc, target_vq, encoder_vq, tgt, src)
+    with distributed.on_device(disc, encoder_vq, target_vq) as dev:
+        return batch_accuracy(disc, target_vq, encoder_vq, tgt.to(dev), src.to(dev))

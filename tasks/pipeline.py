@@ -237,7 +237,7 @@ class TYPPipeline:
         """Decoded logits (N, C, H, W) of samples of P(x_r | x_e', y_r) for dense grids
         x_e (N, C, H, W), y_r (N, 1, H, W) [and the re-simulated views (N, C, H, W)]."""
         models = [m for m in (self.x_vqvae, self.box_encoder, self.unet, self.adapter) if m is not None]
-        with distributed.on_device(*models) as dev:
+        with distributed.on_device(*models) as dev, distributed.autocast():
             y = torch.from_numpy(np.asarray(y_r, dtype=np.float32)).to(dev)
             features = None
             if self.adapter is not None:
@@ -255,7 +255,7 @@ class TYPPipeline:
             z = sample(self.unet, scheduler, shape=(len(y), self.unet.config["latent_channels"], *cond.shape[2:]),
                        num_steps=num_inference_steps or self.num_inference_steps,
                        generator=torch.Generator().manual_seed(seed), cond=cond, adapter_features=features, device=dev)
-            return self.x_vqvae.decode_latents(self.unet.denormalize(z)).cpu()
+            return self.x_vqvae.decode_latents(self.unet.denormalize(z)).float().cpu()
 
     def occupancy(self, x_e: np.ndarray, y_r: np.ndarray, *, seed: int, resim: np.ndarray | None = None,
                   batch_size: int = 8, **kw) -> np.ndarray:

@@ -26,9 +26,10 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
 from tasks import generate, stage1, stage2
-from tasks.pipeline import TYPPipeline, point_statistics
+from tasks.pipeline import PointStats, TYPPipeline, point_statistics
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
 from typ.config import SelftrainConfig, as_dict
@@ -124,12 +125,26 @@ def pseudo_references(frames: list, cfg: SelftrainConfig, grid: Grid,
     return refs
 
 
-def pseudo_tuples(refs: list[generate.Reference], pipe: TYPPipeline, seed: int, resim: np.ndarray | None) -> Tuples:
+@dataclass
+class References:
+    """The pseudo references' inputs: x_e' (R, C, H, W) and y_r (R, 1, H, W) float32 in each
+    reference frame, and the re-simulated views (R, C, H, W) when the adapter takes them."""
+
+    x_e: np.ndarray
+    y_r: np.ndarray
+    resim: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, refs: list[generate.Reference], resim: np.ndarray | None = None) -> "References":
+        return cls(np.stack([r.x_e for r in refs]).astype(np.float32), np.stack([r.y_r for r in refs]).astype(np.float32),
+                   resim)
+
+
+def pseudo_tuples(refs: References, pipe: TYPPipeline, seed: int, conditions: int) -> Tuples:
     """(x̂_r, y_r, x_e'[, re-simulated]) with x̂_r sampled by ``pipe``, the model being enhanced."""
-    x_e = np.stack([r.x_e for r in refs]).astype(np.float32)
-    y_r = np.stack([r.y_r for r in refs]).astype(np.float32)
-    x_hat = pipe.occupancy(x_e, y_r, seed=seed, resim=resim).astype(np.float32)
-    return Tuples(x_hat, y_r, x_e, resim)
+    resim = refs.resim if conditions == 2 else None
+    x_hat = pipe.occupancy(refs.x_e, refs.y_r, seed=seed, resim=resim).astype(np.float32)
+    return Tuples(x_hat, refs.y_r, refs.x_e, resim)
 
 
 def tuple_encoders(v: Variant, source_x, target_x) -> dict:
@@ -171,71 +186,113 @@ def base_pipeline(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> TYPPipe
                        saved["postprocess"], stats, block.adapter_scale)
 
 
-def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None) -> dict:
-    """Every variant for every stage-1 replica, and the generator pipeline for each replica."""
-    from tasks.vqvae import load_model as load_vqvae
+@dataclass
+class Inputs:
+    """What self-training learns from, gathered once for every replica and variant (:func:`gather`):
+    stage 2's source tuples, the pseudo references, the target's ego views as dummy-ego tuples,
+    and the target's point statistics (the generator's :class:`tasks.pipeline.PointStats`)."""
+
+    tuples: Tuples
+    references: References
+    dummy: Tuples
+    stats: PointStats
+
+
+@dataclass
+class Encoders:
+    """E_tgt (``target_x``), E_src from the adaptation (``source_x``) and the box-map encoder."""
+
+    target_x: torch.nn.Module
+    source_x: torch.nn.Module
+    y: torch.nn.Module
+
+
+def gather(cfg, root: Path) -> Inputs:
+    """:class:`Inputs` from the project's data: stage 2's tuples, the target's simulated frames
+    (pseudo references on their labelled vehicles, re-simulated when stage 2 re-simulated) and
+    its voxelized ego views."""
     from typ.sim.sensor import domain_spec
 
     block = cfg.selftrain
-    out = root / block.out
     target_grid = cfg.voxelize.sensor_grid(block.target_domain)
-    target_x, y_encoder = load_vqvae(root / block.vqvae / "x"), load_vqvae(root / block.vqvae / "y")
-    source_x = load_vqvae(root / block.adapt / "source_vq", "adapt")
     tuples = stage2.load_tuples(root / block.stage2)
-    resim = tuples.resim is not None
-    if block.generator == "typ_resim" and not resim:
-        raise TypError("params.yaml", "selftrain.generator", "typ unless stage2.resim is true (no re-simulated "
-                       "tuples to train typ_resim on)", block.generator)
-    variants = variants_to_run(block, resim=resim)
     frames = target_frames(root / block.sim / block.target_domain / block.target_split, cfg.voxelize.mount_height,
                            block.target_domain)
     stats = point_statistics([f.points for f in frames], target_grid)
     refs = pseudo_references(frames, block, target_grid, np.random.default_rng(block.seed))
-    spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor if resim else None
-    ref_resim = (np.stack(list(stage2.resimulated_views((r.ego_points for r in refs), spec, target_grid)))
-                 .astype(np.float32) if resim else None)
+    resim = None
+    if tuples.resim is not None:
+        spec = domain_spec(block.target_domain, azimuth_step_deg=cfg.simulate.azimuth_step_deg).sensor
+        resim = np.stack(list(stage2.resimulated_views((r.ego_points for r in refs), spec, target_grid))).astype(np.float32)
     dummy = dummy_ego_tuples(load_views(root / block.voxels, dataset=block.target_domain, split=block.target_split))
-    metrics: dict = {"variants": [v.name for v in variants], "source_tuples": len(tuples), "pseudo_references": len(refs),
-                     "dummy_ego_tuples": len(dummy)}
-    augment = cfg.stage2.augment
+    return Inputs(tuples, References.of(refs, resim), dummy, stats)
+
+
+def enhance(v: Variant, cfg, data: Inputs, encoders: Encoders, base_pipe: TYPPipeline, base_adapter, *, seed: int,
+            out: Path, log_fn: Callable[[dict, int], None]):
+    """The adapter of variant ``v`` for the replica ``seed`` whose stage-1 model ``base_pipe`` holds;
+    ``base_adapter``: stage 2's adapter with ``v.conditions`` (unused by "no adaptation"). Returns
+    (adapter, an example of its input for the model registry)."""
+    block, augment = cfg.selftrain, cfg.stage2.augment
+    ldm, schedule, T = base_pipe.unet, base_pipe.schedule, base_pipe.train_timesteps
+    if not v.discriminator:  # "no adaptation": stage 2's recipe on tuples encoded by E_tgt
+        [encoded] = encode_kinds(v, {"source": data.tuples}, encoders.source_x, encoders.target_x, encoders.y, ldm,
+                                 augment=augment)
+        adapter = stage2.fit_adapter(stage2.build_adapter(ldm, res_blocks=cfg.stage2.adapter_res_blocks, seed=seed), ldm,
+                                     schedule, T, encoded, name=f"selftrain.seed_{seed}.{v.name}",
+                                     settings=stage2.settings_of(cfg.stage2, seed, cfg.stage1.min_snr),
+                                     views=len(data.tuples), key_extra=as_dict(cfg.stage2), out=out, log_fn=log_fn)
+        return adapter, _dummy_example(data, encoders, ldm, v)
+    if not (v.self_training or v.dummy_ego):
+        return base_adapter, _dummy_example(data, encoders, ldm, v)
+    kinds = {"source": data.tuples}
+    if v.self_training:  # x̂_r generated by the model being enhanced, as trained
+        as_trained = dataclasses.replace(base_pipe, adapter=base_adapter, adapter_scale=1.0)
+        kinds["pseudo"] = pseudo_tuples(data.references, as_trained, seed, v.conditions)
+    if v.dummy_ego:
+        kinds["dummy"] = data.dummy
+    parts = encode_kinds(v, kinds, encoders.source_x, encoders.target_x, encoders.y, ldm, augment=augment)
+    n_views = sum(len(t) for t in kinds.values())
+    # fine-tuned from stage 2's weights, trainable whatever flags they came with (an EMA copy is frozen)
+    adapter = stage2.fit_adapter(copy.deepcopy(base_adapter).requires_grad_(True), ldm, schedule, T, concat(*parts),
+                                 name=f"selftrain.seed_{seed}.{v.name}",
+                                 settings=stage2.settings_of(block, seed, cfg.stage1.min_snr), views=n_views,
+                                 key_extra={**training_fields(block), "variant": v.name}, out=out, log_fn=log_fn)
+    return adapter, parts[0].ego[:2]
+
+
+def _dummy_example(data: Inputs, encoders: Encoders, ldm, v: Variant):
+    return stage2.encode(data.dummy, encoders.target_x, encoders.y, ldm, conditions=v.conditions).ego[:2]
+
+
+def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None) -> dict:
+    """Every variant for every stage-1 replica, and the generator pipeline for each replica."""
+    from tasks.vqvae import load_model as load_vqvae
+
+    block = cfg.selftrain
+    out = root / block.out
+    encoders = Encoders(load_vqvae(root / block.vqvae / "x"), load_vqvae(root / block.adapt / "source_vq", "adapt"),
+                        load_vqvae(root / block.vqvae / "y"))
+    data = gather(cfg, root)
+    resim = data.tuples.resim is not None
+    if block.generator == "typ_resim" and not resim:
+        raise TypError("params.yaml", "selftrain.generator", "typ unless stage2.resim is true (no re-simulated "
+                       "tuples to train typ_resim on)", block.generator)
+    variants = variants_to_run(block, resim=resim)
+    metrics: dict = {"variants": [v.name for v in variants], "source_tuples": len(data.tuples),
+                     "pseudo_references": len(data.references.x_e), "dummy_ego_tuples": len(data.dummy)}
+    chosen = resim_variant(block) if block.generator == "typ_resim" else variant_of(block)
     for seed in stage1.replica_seeds(cfg.stage1.seed, cfg.stage1.replicas):
-        base_pipe = base_pipeline(cfg, root, seed, target_x, y_encoder, stats)
-        ldm, saved = base_pipe.unet, {"schedule": base_pipe.schedule, "train_timesteps": base_pipe.train_timesteps}
+        base_pipe = base_pipeline(cfg, root, seed, encoders.target_x, encoders.y, data.stats)
         stage2_dir = stage1.replica_dir(root / block.stage2, seed)
         for v in variants:
-            if not v.discriminator:  # "no adaptation": stage 2's recipe on tuples encoded by E_tgt
-                [data] = encode_kinds(v, {"source": tuples}, source_x, target_x, y_encoder, ldm, augment=augment)
-                adapter = stage2.fit_adapter(stage2.build_adapter(ldm, res_blocks=cfg.stage2.adapter_res_blocks, seed=seed), ldm,
-                                             saved["schedule"], saved["train_timesteps"], data,
-                                             name=f"selftrain.seed_{seed}.{v.name}",
-                                             settings=stage2.settings_of(cfg.stage2, seed, cfg.stage1.min_snr), views=len(tuples),
-                                             key_extra=as_dict(cfg.stage2), out=out, log_fn=log_fn)
-            else:
-                base = stage2.load_adapter(stage2_dir / stage2.ADAPTERS[v.conditions])
-                if not (v.self_training or v.dummy_ego):
-                    adapter = base
-                else:
-                    kinds = {"source": tuples}
-                    if v.self_training:  # x̂_r generated by the model being enhanced, as trained
-                        as_trained = dataclasses.replace(base_pipe, adapter=base, adapter_scale=1.0)
-                        kinds["pseudo"] = pseudo_tuples(refs, as_trained, seed,
-                                                        ref_resim if v.conditions == 2 else None)
-                    if v.dummy_ego:
-                        kinds["dummy"] = dummy
-                    parts = encode_kinds(v, kinds, source_x, target_x, y_encoder, ldm, augment=augment)
-                    n_views = sum(len(t) for t in kinds.values())
-                    adapter = stage2.fit_adapter(copy.deepcopy(base), ldm, saved["schedule"], saved["train_timesteps"],
-                                                 concat(*parts), name=f"selftrain.seed_{seed}.{v.name}",
-                                                 settings=stage2.settings_of(block, seed, cfg.stage1.min_snr), views=n_views,
-                                                 key_extra={**training_fields(block), "variant": v.name}, out=out,
-                                                 log_fn=log_fn)
+            base = stage2.load_adapter(stage2_dir / stage2.ADAPTERS[v.conditions]) if v.discriminator else None
+            adapter, example = enhance(v, cfg, data, encoders, base_pipe, base, seed=seed, out=out, log_fn=log_fn)
             stage2.save_adapter(adapter, stage1.replica_dir(out, seed) / v.name)
-            chosen = resim_variant(block) if block.generator == "typ_resim" else variant_of(block)
             if v == chosen:
                 base_pipe.with_adapter(adapter).save_pretrained(generator_dir(out, seed))
                 if log_model is not None and seed == cfg.stage1.seed:
-                    log_model("selftrain-adapter", adapter, parts[0].ego[:2] if v.self_training or v.dummy_ego
-                              else stage2.encode(dummy, target_x, y_encoder, ldm, conditions=v.conditions).ego[:2])
+                    log_model("selftrain-adapter", adapter, example)
     return metrics
 
 

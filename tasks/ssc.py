@@ -46,6 +46,7 @@ from models.ssc import SSC_LIDAR_RANGE, class_weights, merge_max_confidence, ssc
 from tasks.artifacts import load_if_key, save_module
 from tasks.fusion_data import FusionDataset, FusionSample, unavailable
 from tasks.training import one_thread, seed_everything
+from typ import distributed
 from typ.config import SSC_METHODS, SscConfig
 from typ.errors import TypError
 from typ.io import hash_obj
@@ -170,28 +171,38 @@ class TrainingSet:
         return TrainingSet(views, self.samples, self.ego_maps, hash_obj([self.key, mode, extra])[:16], ego)
 
 
-def _fit(model: FusionModule, step: Callable[[int], tuple[torch.Tensor, np.ndarray]], n_items: int, *, steps: int,
-         seed: int, lr: float, weights: np.ndarray, name: str) -> list[float]:
+def _fit(model: FusionModule, step: Callable[[int, torch.device], tuple[torch.Tensor, np.ndarray]], n_items: int, *,
+         steps: int, seed: int, lr: float, weights: np.ndarray, name: str) -> list[float]:
     """``steps`` Adam steps (cosine decay) of class-weighted cross-entropy, item ``k`` of a seeded
-    order each (every item once before any twice); ``step(k)`` -> (logits (1, K, X, Y, Z), labels)."""
+    order each (every item once before any twice); ``step(k, device)`` -> (logits (1, K, X, Y, Z),
+    labels), the inputs on ``device``. The model trains on the runtime device under its autocast
+    precision and ends where it was."""
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
     order = np.random.default_rng(seed).permutation(np.resize(np.arange(n_items), steps))
-    w = torch.tensor(weights, dtype=torch.float32)
     losses = []
-    model.train()
-    for n, k in enumerate(order):
-        logits, labels = step(int(k))
-        loss = F.cross_entropy(logits, torch.as_tensor(labels, dtype=torch.long)[None], weight=w, ignore_index=IGNORE)
-        if not torch.isfinite(loss):
-            raise TypError(f"{STAGE}:{name}", "loss", "a finite training loss", f"{loss.item()} at step {n}")
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        losses.append(loss.item())
+    with distributed.on_device(model) as dev:
+        w = torch.tensor(weights, dtype=torch.float32, device=dev)
+        model.train()
+        for n, k in enumerate(order):
+            with distributed.autocast():
+                logits, labels = step(int(k), dev)
+            labels = torch.as_tensor(labels, dtype=torch.long).to(dev)[None]
+            loss = F.cross_entropy(logits.float(), labels, weight=w, ignore_index=IGNORE)
+            if not torch.isfinite(loss):
+                raise TypError(f"{STAGE}:{name}", "loss", "a finite training loss", f"{loss.item()} at step {n}")
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            losses.append(loss.item())
     model.eval()
     return losses
+
+
+def _on(tensors: dict, device: torch.device) -> dict:
+    """Every tensor of ``tensors`` on ``device`` (other values as they are)."""
+    return {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in tensors.items()}
 
 
 def train_single(data: TrainingSet, *, steps: int, seed: int, lr: float, model_kw: dict,
@@ -204,9 +215,9 @@ def train_single(data: TrainingSet, *, steps: int, seed: int, lr: float, model_k
     model = NoFusion(detector=det)
     one = torch.ones(1, 1, dtype=torch.bool)
 
-    def step(k: int):
+    def step(k: int, dev: torch.device):
         cloud, labels = data.views[k]
-        return model(det.pillarize([cloud]), agent_mask=one)["occ"], labels
+        return model(_on(det.pillarize([cloud]), dev), agent_mask=one.to(dev))["occ"], labels
 
     return model, _fit(model, step, len(data.views), steps=steps, seed=seed, lr=lr, weights=weights, name="single")
 
@@ -235,9 +246,9 @@ def train_fused(method: str, data: TrainingSet, single: NoFusion, *, steps: int,
     module = build(method, copy.deepcopy(single.detector), options)
     module.warm_start(single.detector)
 
-    def step(k: int):
+    def step(k: int, dev: torch.device):
         pillars, kw = _inputs(single.detector, method, data.samples[k])
-        return module(pillars, **kw)["occ"], data.ego_maps[k]
+        return module(_on(pillars, dev), **_on(kw, dev))["occ"], data.ego_maps[k]
 
     return module, _fit(module, step, len(data.samples), steps=steps, seed=seed, lr=lr, weights=weights, name=method)
 

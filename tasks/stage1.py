@@ -59,14 +59,15 @@ def train_views(block: Stage1Config, root: Path) -> ViewSet:
 def encode_views(x_vq, y_vq, views: ViewSet, *, dihedral: bool = False,
                  batch_size: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
     """(x^f, y^f) pre-quantization latents of every view; with ``dihedral``, of each view under
-    all 8 symmetries (8 N rows, symmetry-major)."""
+    all 8 symmetries (8 N rows, symmetry-major). Encoded on the runtime device, returned on the CPU."""
     xs, ys = [], []
-    for k in (range(8) if dihedral else [0]):
-        for start in range(0, len(views), batch_size):
-            index = np.arange(start, min(start + batch_size, len(views)))
-            x, y = views.batch(index, dihedral=np.full(len(index), k))
-            xs.append(x_vq.encode_pre_quant(x))
-            ys.append(y_vq.encode_pre_quant(y))
+    with distributed.on_device(x_vq, y_vq) as dev:
+        for k in (range(8) if dihedral else [0]):
+            for start in range(0, len(views), batch_size):
+                index = np.arange(start, min(start + batch_size, len(views)))
+                x, y = views.batch(index, dihedral=np.full(len(index), k))
+                xs.append(x_vq.encode_pre_quant(x.to(dev)).cpu())
+                ys.append(y_vq.encode_pre_quant(y.to(dev)).cpu())
     return torch.cat(xs), torch.cat(ys)
 
 
@@ -206,18 +207,20 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, seed:
 def sample_logits(model: LatentDiffusion, x_vq, cond: torch.Tensor, *, cfg: Stage1Config,
                   generator: torch.Generator, adapter_features: list[torch.Tensor] | None = None,
                   num_steps: int | None = None, sampler: str | None = None) -> torch.Tensor:
-    """Sample x^f for a batch of y^f (pre-quant, unnormalised) and decode: logits (B, C, H, W).
+    """Sample x^f for a batch of y^f (pre-quant, unnormalised) and decode: logits (B, C, H, W) on
+    the CPU, sampled on the runtime device under its autocast precision.
 
     y^f is normalised once for the whole reverse process (it does not change across steps).
     """
     scheduler = make_scheduler(sampler or cfg.sampler, betas(cfg.schedule, cfg.train_timesteps),
                                prediction_type=model.config.get("prediction", "epsilon"))
-    c = model.normalize_cond(cond)
-    z = sample(model, scheduler, shape=(cond.shape[0], model.config["latent_channels"], *cond.shape[2:]),
-               num_steps=num_steps or cfg.sample_steps, generator=generator, cond=c,
-               adapter_features=adapter_features, eta=cfg.eta if (sampler or cfg.sampler) == "ddim" else 0.0,
-               device=cond.device)
-    return x_vq.decode_latents(model.denormalize(z))
+    with distributed.on_device(model, x_vq) as dev, distributed.autocast():
+        c = model.normalize_cond(cond.to(dev))
+        features = None if adapter_features is None else [f.to(dev) for f in adapter_features]
+        z = sample(model, scheduler, shape=(cond.shape[0], model.config["latent_channels"], *cond.shape[2:]),
+                   num_steps=num_steps or cfg.sample_steps, generator=generator, cond=c,
+                   adapter_features=features, eta=cfg.eta if (sampler or cfg.sampler) == "ddim" else 0.0, device=dev)
+        return x_vq.decode_latents(model.denormalize(z)).float().cpu()
 
 
 def tune_thresholds(logits: torch.Tensor, truth: torch.Tensor, cfg: Stage1Config, seed: int) -> dict:

@@ -106,17 +106,18 @@ def evaluate(model: BEVVQVAE, kind: str, views: ViewSet, *, threshold: float, ba
     """Reconstruction IoU / precision / recall (voxel level, pooled over the split) and codebook
     use on ``views``: ``codes_used`` (share of the codebook that some cell picks) and
     ``perplexity`` (exp of the entropy of the code histogram: the number of equally used codes
-    that would give the same entropy)."""
+    that would give the same entropy). The model runs on the runtime device."""
     model.eval()
     preds, truths = [], []
     counts = torch.zeros(model.config["num_codes"], dtype=torch.float64)
-    for start in range(0, len(views), batch_size):
-        index = np.arange(start, min(start + batch_size, len(views)))
-        target = _inputs(views, kind, index)
-        out = model(target)
-        preds.append((torch.sigmoid(out.logits) > threshold).numpy())
-        truths.append((target > 0.5).numpy())
-        counts += torch.bincount(out.indices.flatten(), minlength=len(counts)).double()
+    with distributed.on_device(model) as dev:
+        for start in range(0, len(views), batch_size):
+            index = np.arange(start, min(start + batch_size, len(views)))
+            target = _inputs(views, kind, index)
+            out = model(target.to(dev))
+            preds.append((torch.sigmoid(out.logits) > threshold).cpu().numpy())
+            truths.append((target > 0.5).cpu().numpy())
+            counts += torch.bincount(out.indices.flatten().cpu(), minlength=len(counts)).double()
     # one IoU over every voxel of the split (not a mean of per-view IoUs)
     scores = occupancy_iou(np.concatenate(preds), np.concatenate(truths))
     p = counts[counts > 0] / counts.sum()

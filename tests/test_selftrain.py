@@ -184,3 +184,40 @@ def test_each_kind_of_tuple_is_encoded_by_its_domains_encoder():
             if v.conditions == 2:  # the re-simulated view beside x_e', through the same encoder
                 ego.append(ldm.normalize(enc.encode_pre_quant(torch.from_numpy(t.resim))))
             torch.testing.assert_close(part.ego, torch.cat(ego, dim=1), msg=f"{v.name} {kind}")
+
+
+def test_enhance_fine_tunes_stage_2s_adapter_as_stage_2_hands_it_over(tmp_path):
+    """fit_adapter returns its EMA copy, frozen: self-training in the same process (bench/gpu.py)
+    fine-tunes it all the same, and leaves stage 2's adapter as it was."""
+    from models.vqvae import PooledBoxMap
+    from tasks import selftrain, stage1, stage2, vqvae
+    from tasks.pipeline import PointStats, TYPPipeline
+
+    unet = {"block_out_channels": [8, 8], "norm_num_groups": 4, "cross_attention_dim": 8, "attention_head_dim": 4}
+    ae = {"latent_channels": 4, "block_out_channels": [8, 8], "num_codes": 16, "norm_num_groups": 4, "quantizer": "vq"}
+    cfg = config_from_dict({"stage1": {"unet": unet}, "vqvae": {"x": ae, "y": ae},
+                            "stage2": {"epochs": 1, "batch_size": 2, "augment": 1},
+                            "selftrain": {"epochs": 1, "batch_size": 2}})
+    grid = Grid((-16.0, 16.0), (-16.0, 16.0), (-3.0, 1.0), (32, 32, 4))
+    torch.manual_seed(0)
+    x_vq = vqvae.build("x", cfg.vqvae.x, 4)
+    ldm = stage1.build(cfg.stage1, 4, 1, 16)
+    rng = np.random.default_rng(0)
+    views = ViewSet(grid, [("s", str(i), "0") for i in range(2)],
+                    [(np.argwhere(rng.random(grid.shape) < 0.1), np.argwhere(rng.random(grid.shape[:2]) < 0.1))
+                     for _ in range(2)])
+    x, y = views.occupancy([0, 1]) > 0.5, views.box_maps([0, 1]) > 0.5
+    tuples = stage2.Tuples(x, y, x[::-1].copy())
+    latents = stage2.encode(tuples, x_vq, PooledBoxMap(downsample=2), ldm)
+    handed = stage2.fit_adapter(stage2.build_adapter(ldm, res_blocks=1, seed=0), ldm, "linear", 1000, latents,
+                                name="adapter", settings=stage2.settings_of(cfg.stage2, 0, 0.0), views=2,
+                                key_extra={}, out=tmp_path / "s2", log_fn=lambda v, s: None)
+    assert not any(p.requires_grad for p in handed.parameters())   # the EMA copy, as stage 2 returns it
+    before = [p.clone() for p in handed.parameters()]
+    base = TYPPipeline(x_vq, PooledBoxMap(downsample=2), ldm, None, grid, "linear", 1000, "ddim", 2,
+                       {"low": 0.5, "high": 0.5, "noise_std": 0.0})
+    data = selftrain.Inputs(tuples, selftrain.References(x, y), dummy_ego_tuples(views), PointStats.single())
+    adapter, _ = selftrain.enhance(TABLE4[-1], cfg, data, selftrain.Encoders(x_vq, x_vq, base.box_encoder), base,
+                                   handed, seed=0, out=tmp_path / "st", log_fn=lambda v, s: None)
+    assert any(not torch.equal(p, q) for p, q in zip(adapter.parameters(), before))
+    assert all(torch.equal(p, q) for p, q in zip(handed.parameters(), before))

@@ -16,6 +16,11 @@ optimizer covers them all without changing the stages.
 Only rank 0 writes checkpoints, outputs and MLflow runs (:func:`is_main`). Outside torchrun
 (``WORLD_SIZE`` unset or 1) everything here is a no-op apart from device and autocast.
 
+On CUDA, :func:`setup` asks for reproducible arithmetic (:func:`reproducible_cuda`): fp32 is
+IEEE fp32 (no TF32 rounding of matmul and convolution inputs), cuDNN picks deterministic
+algorithms and torch its deterministic kernels where it has them (it warns, once per op, where it
+has none: the backward of nearest upsampling in diffusers' UNets, for one).
+
 Devices: a stage's data stays on the CPU (it is small next to the models and drawn with numpy
 generators, so batches do not depend on the device). A training step takes its rows with
 :func:`local_batch`, which moves them to the runtime device; the modules a loop or a sampler
@@ -84,6 +89,8 @@ def setup(device: str = "cpu", precision: str = "fp32", *, where: str = "params.
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     dev = resolve_device(device, local_rank=local_rank, where=where)
+    if dev.type == "cuda":
+        reproducible_cuda()
     if world > 1 and not dist.is_initialized():
         if dev.type == "cuda":
             torch.cuda.set_device(dev)
@@ -91,6 +98,19 @@ def setup(device: str = "cpu", precision: str = "fp32", *, where: str = "params.
         dist.init_process_group("cpu:gloo,cuda:nccl" if dev.type == "cuda" else "gloo", rank=rank, world_size=world)
     _runtime = Runtime(dev, precision, rank, world, local_rank)
     return _runtime
+
+
+def reproducible_cuda(enabled: bool = True) -> None:
+    """CUDA arithmetic that a rerun repeats and a CPU run can be compared with: no TF32, cuDNN's
+    deterministic algorithms without autotuning, torch's deterministic kernels where they exist
+    (a warning where they do not). ``enabled=False``: the fastest kernels (TF32, cuDNN autotuning)."""
+    if enabled:
+        # cuBLAS is deterministic only with a fixed workspace, read when its first handle is made
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = not enabled
+    torch.backends.cudnn.deterministic = enabled
+    torch.backends.cudnn.benchmark = not enabled
+    torch.use_deterministic_algorithms(enabled, warn_only=True)
 
 
 def teardown() -> None:
