@@ -54,7 +54,10 @@ def snapshot(folder: Path) -> dict[str, object]:
         info = p.stat()
         return (info.st_size, info.st_mtime_ns) if info.st_size > 1 << 26 else p.read_bytes()
 
-    return {str(p.relative_to(folder)): state(p) for p in sorted(folder.rglob("*"))}
+    # .typ/ is typ's own state (gitignored): its per-stage lock files (typ.io.output_lock) stay by
+    # design, as removing a lock file another run waits on would let a third one in; never a user's output
+    return {str(p.relative_to(folder)): state(p) for p in sorted(folder.rglob("*"))
+            if p.relative_to(folder).parts[0] != ".typ"}
 
 
 def run_stage_process(argv: list[str], cwd: Path, env: dict) -> tuple[int, str]:
