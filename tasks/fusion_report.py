@@ -60,6 +60,7 @@ def metrics_of(results: dict) -> dict:
             "table3": {m: {p: {ft: _ap_only(c) for ft, c in cols.items()} for p, cols in rows.items()}
                        for m, rows in t.get("table3", {}).items()},
             "differences": results.get("differences", {}),
+            "table3_differences": results.get("table3_differences", {}),
             "robustness": curves, "applied_delay_ms": rob["applied_delay_ms"],
             "delay_frames_scored": rob["delay_frames_scored"], "targets": targets(results)}
 
@@ -97,12 +98,16 @@ def targets(results: dict) -> dict:
         for m, row in t1.items() if row.get("generated") and row.get("oracle")
         and row["oracle"]["ap50"]["overall"] and row["oracle"]["ap50"]["overall"]["value"] > 0
         and row["generated"]["ap50"]["overall"]}
-    sets = [k for k in results.get("finetune_sets", {}) if k not in ("0", "all")]
-    if sets:
-        first = sets[0]
-        out[f"colwaymo_beats_scratch_ft{first}"] = {
-            m: _above(_value(rows.get("colwaymo", {}).get(first)), _value(rows.get("scratch", {}).get(first)))
-            for m, rows in t3.items()}
+    d3 = results.get("table3_differences", {})
+    for pair in ("colwaymo-scratch", "source-scratch", "colwaymo-source"):
+        by_set = {ft: {m: None if (d3.get(m, {}).get(pair) or {}).get(ft) is None else d3[m][pair][ft]["low"] > 0
+                       for m in t3} for ft in results.get("finetune_sets", {}) if ft != "0"}
+        if any(v is not None for row in by_set.values() for v in row.values()):
+            out[f"{pair.replace('-', '_beats_')}_paired"] = by_set
+    all_tuned = {m: (_value(rows.get("colwaymo", {}).get("all")), _value(rows.get("scratch", {}).get("all")))
+                 for m, rows in t3.items()}
+    out["colwaymo_ft_all_ge_scratch_minus_0.02"] = {
+        m: None if a is None or b is None else a["value"] >= b["value"] - 0.02 for m, (a, b) in all_tuned.items()}
     rob = results["robustness"]
     out["falls_with"] = {sweep: {m: (lambda v: None if None in v else v[-1] < v[0])(
         [None if c["ap50"]["overall"] is None else c["ap50"]["overall"]["value"] for c in e[sweep]])
@@ -158,7 +163,9 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
              f"{results['runs']} runs × {results['seeds']} seeds = {results['trainings']} trainings: the "
              f"single-agent detector {cfg.steps} steps ({cfg.pretrain_steps} pre-training), fusion methods "
              + (f"{cfg.warm_start_steps} steps from it" if cfg.warm_start else "as many from scratch")
-             + f", fine-tuning {cfg.finetune_steps}; batch {cfg.batch_size}, {cfg.lr_schedule} learning rate, "
+             + "; fine-tuning a pre-trained network on n of the N real_cav scenarios trains as many steps "
+             "as scratch on the same n (n / N of the budget, the same epochs)"
+             + f"; batch {cfg.batch_size}, {cfg.lr_schedule} learning rate, "
              f"augmentation (flip {cfg.augment.flip}, ±{cfg.augment.rotation_deg:g}°, scale "
              f"{cfg.augment.scale[0]:g}–{cfg.augment.scale[1]:g}). Training stage: {results['seconds_total']:.0f} s "
              f"wall, {results['seconds_training']:.0f} s of training summed over the runs (several run at once).", "",
@@ -186,6 +193,19 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
                 cells = [_iv(_value(cols.get(ft), key, b)) for ft in sets for b in ("overall", "50-100")]
                 lines.append(f"| {METHODS[method].display if i == 0 else ''} | {PRETRAIN[source]} | "
                              + " | ".join(cells) + " |")
+    d3 = results.get("table3_differences", {})
+    if d3:
+        pairs = {"colwaymo-scratch": "generated target − scratch", "source-scratch": "source sim − scratch",
+                 "colwaymo-source": "generated target − source sim"}
+        cols = [ft for ft in sets if ft != "0"]
+        lines += ["", "Paired differences, AP@0.5 overall (the same resampled test scenarios and seeds on both "
+                  "sides; \"A beats B\" where the interval is above 0):", "",
+                  "| Method | Pair | " + " | ".join(f"FT {sets[ft]} sc." for ft in cols) + " |",
+                  "|---|---|" + "---|" * len(cols)]
+        for method, by_pair in d3.items():
+            for i, (pair, label) in enumerate((k, v) for k, v in pairs.items() if k in by_pair):
+                lines.append(f"| {METHODS[method].display if i == 0 else ''} | {label} | "
+                             + " | ".join(_signed(by_pair[pair].get(ft)) for ft in cols) + " |")
     lines += ["", "## Targets (issue 14), measured", ""] + [f"- {k}: {v}" for k, v in targets(results).items()]
     rob = results["robustness"]
     lines += ["", "## Robustness (V2VSSC §IV), AP@0.5 overall / 50–100 m, oracle networks", "",

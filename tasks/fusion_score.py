@@ -300,6 +300,23 @@ def robustness(scorer: Scorer, runs: Mapping[str, str]) -> dict:
     return out
 
 
+def table3_differences(scorer: Scorer, cells: Sequence[Cell]) -> dict:
+    """Table 3, each pre-training against scratch on the same fine-tuning scenes, and the generated
+    target against source sim pre-training: :func:`paired_difference` of AP@0.5 overall (frame
+    order), ``{method: {"colwaymo-scratch" | "source-scratch" | "colwaymo-source": {column: interval}}}``."""
+    table3 = {(c.method, c.row, c.column): c.run for c in cells if c.table == "table3"}
+    scenarios, kw = scorer.inputs().scenarios, {"n_boot": scorer.cfg.bootstrap, "seed": scorer.cfg.seed}
+    out: dict = {}
+    for (method, row, column), run in table3.items():
+        for base in ("scratch", "source"):
+            other = table3.get((method, base, column))
+            if row in ("scratch", base) or other is None or (base == "source" and row != "colwaymo"):
+                continue
+            out.setdefault(method, {}).setdefault(f"{row}-{base}", {})[column] = paired_difference(
+                scorer.matches(run, method), scorer.matches(other, method), scenarios, **kw)
+    return out
+
+
 def test_summary(inputs: Inputs) -> dict:
     """Frames, scenarios and vehicles of the test split, vehicles per band."""
     s = inputs.samples
@@ -322,7 +339,8 @@ def score(cfg: FusionConfig, test: FusionDataset, networks: Mapping[str, Sequenc
     if progress:
         progress(f"robustness of {len(robustness_runs)} methods")
     return {**test_summary(scorer.inputs()), "seeds": cfg.seeds, "tables": tables,
-            "differences": differences(scorer, cells), "robustness": robustness(scorer, robustness_runs)}
+            "differences": differences(scorer, cells), "table3_differences": table3_differences(scorer, cells),
+            "robustness": robustness(scorer, robustness_runs)}
 
 
 def score_benchmark(bench: Benchmark, progress: Callable[[str], None] | None = None) -> dict:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,7 +32,7 @@ SMALL = {"methods": list(METHODS),
                     "window_dim_heads": [8], "mlp_dim": 8},
          "robustness": {"position_std": [0.0, 0.4], "heading_std_deg": [0.0, 0.8], "delay_ms": [0, 100],
                         "quantization_bits": [8, 2]},
-         "steps": 2, "pretrain_steps": 2, "finetune_steps": 1, "warm_start_steps": 1, "checkpoint_every": 1,
+         "steps": 2, "pretrain_steps": 2, "warm_start_steps": 1, "checkpoint_every": 1,
          "finetune_scenes": [1], "seeds": 2, "bootstrap": 50}
 BAND_NAMES = ("overall", "0-30", "30-50", "50-100")
 
@@ -126,8 +127,7 @@ def test_every_oracle_and_generated_cell_holds_a_number(stage, project):
     # one pre-training per (source, network) serves every fine-tuning size
     pre = [r for r in bench.plan.runs.values() if r.name.startswith("pretrain-colwaymo")]
     assert sorted(r.method for r in pre) == sorted(["late", "early", "attfuse", "v2xvit"])
-    assert {r.init for r in bench.plan.runs.values() if r.name.startswith("finetune")} == \
-        {r.name for r in bench.plan.runs.values() if r.name.startswith("pretrain")}
+    _check_table3_budgets(bench.plan, cfg)
     # warm start: AttFuse began from the single-agent detector of the same data, then trained on
     assert bench.plan.runs["oracle-attfuse"].warm == "oracle-late"
     assert [t.steps for t in bench.networks["oracle-attfuse"]] == [cfg.warm_start_steps] * 2
@@ -315,6 +315,43 @@ def test_the_tables_of_perfect_agents_score_one(stage, project):
             assert method == "none" or c["ap50"]["overall"]["low"] == 1.0
             if table == "table1":     # precision 1 everywhere: the ranking cannot matter
                 assert c["ap50_global"]["overall"]["value"] == expected, (method, row)
+
+
+def _check_table3_budgets(plan: F.Plan, cfg) -> None:
+    """Table 3's arms differ only in where they start (TYP §4.5): each fine-tuned run trains the steps
+    its scratch run on the same scenes trains; the single-agent detector starts from its own
+    pre-training, the warm-started methods from the fine-tuned detector, as scratch's from scratch's."""
+    runs = plan.runs
+    tuned = [r for r in runs.values() if r.name.startswith("finetune")]
+    assert tuned
+    for run in tuned:
+        ft, source, network = run.name[len("finetune"):].split("-")
+        twin = runs["oracle-" + network if ft == "all" else f"scratch{ft}-{network}"]
+        assert (run.steps, run.data) == (twin.steps, twin.data), run.name
+        if twin.warm is None:
+            assert (run.init, run.warm) == (f"pretrain-{source}-{network}", None), run.name
+        else:
+            assert (run.init, run.warm) == (None, f"finetune{ft}-{source}-{runs[twin.warm].method}"), run.name
+    assert {r.init for r in tuned} - {None} <= {r.name for r in runs.values() if r.name.startswith("pretrain")}
+
+
+def test_table3_fine_tunes_with_scratch_budget_on_the_same_scenes(monkeypatch):
+    """tiny's plan on 12 training scenarios: on n of them every run trains n / 12 of its full steps,
+    fine-tuned or from scratch (a fine-tuning budget of 1/20 of scratch's left every pre-trained
+    detector near AP 0, all scenes included)."""
+    cfg = config_from_dict({"profile": "tiny"}).fusion
+    monkeypatch.setattr(F, "list_scenarios", lambda folder: [f"s{i}" for i in range(12)])
+    monkeypatch.setattr(F, "unavailable", lambda folder: None)
+    plan = F.plan(cfg, F.Roots.from_config(cfg, Path("/nonexistent")))
+    assert plan.finetune_sets == {"0": 0, "1": 1, "5": 5, "all": None}
+    _check_table3_budgets(plan, cfg)
+    steps = {name: run.steps for name, run in plan.runs.items()}
+    assert steps["finetune1-colwaymo-late"] == steps["scratch1-late"] == round(cfg.steps / 12)
+    assert steps["finetune5-source-late"] == steps["scratch5-late"] == round(cfg.steps * 5 / 12)
+    assert steps["finetuneall-colwaymo-late"] == steps["oracle-late"] == cfg.steps
+    assert steps["finetune5-colwaymo-attfuse"] == steps["scratch5-attfuse"] == round(cfg.warm_start_steps * 5 / 12)
+    assert steps["pretrain-colwaymo-late"] == cfg.pretrain_steps
+    assert [F.subset_steps(100, n, 7) for n in (None, 7, 1, 0)] == [100, 100, 14, 1]
 
 
 def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):

@@ -41,7 +41,7 @@ SMALL = {
                   "ablation": True},
     "generate": {"references_per_frame": 1, "sample_steps": 3, "max_distance": 50.0},
     "fusion": {"methods": ["none", "early", "late", "attfuse", "v2xvit"],
-               "steps": 2, "pretrain_steps": 2, "finetune_steps": 1, "warm_start_steps": 1, "checkpoint_every": 1,
+               "steps": 2, "pretrain_steps": 2, "warm_start_steps": 1, "checkpoint_every": 1,
                "seeds": 1, "bootstrap": 20,
                "robustness": {"position_std": [0.0, 0.2], "heading_std_deg": [0.0, 0.4], "delay_ms": [0, 100],
                               "quantization_bits": [8]}},

@@ -755,8 +755,12 @@ class FusionConfig:
     The single-agent detector trains ``steps`` from scratch (``pretrain_steps`` on a pre-training
     set); early and intermediate fusion start from it (``warm_start``) and train
     ``warm_start_steps`` more at ``finetune_lr``, or from scratch for ``steps`` /
-    ``pretrain_steps`` like it (off, as OpenCOOD trains them). Fine-tuning a pre-trained network
-    on 1, each of ``finetune_scenes`` and all real_cav training scenarios takes ``finetune_steps``.
+    ``pretrain_steps`` like it (off, as OpenCOOD trains them). Table 3 fine-tunes a pre-trained
+    network on each of ``finetune_scenes`` and on all N real_cav training scenarios with the steps
+    training from scratch on the same scenarios takes (TYP §4.5: the paper's arms differ only in
+    where they start): on n of the N scenarios, every run trains n / N of its steps on all N (the
+    same epochs, as OpenCOOD trains by epochs), the fine-tuned single-agent detector at
+    ``finetune_lr`` and the warm-started methods from it, as from scratch.
     ``lr_schedule``: ``cosine`` (linear warm-up over ``warmup`` of the run, then cosine decay to
     1 % of the peak) or ``constant`` (after the same warm-up). ``generated_extent``: half the side
     (m) of the square around a cooperating agent that its generated cloud covers (the generator's
@@ -781,7 +785,6 @@ class FusionConfig:
     warmup: float
     steps: int
     pretrain_steps: int
-    finetune_steps: int
     finetune_scenes: tuple[int, ...]
     warm_start: bool
     warm_start_steps: int
@@ -814,7 +817,7 @@ class FusionConfig:
         self.augment.check(where, f"{name}.augment")
         _check_methods(where, f"{name}.methods", self.methods, FUSION_METHODS)
         _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
-                         "pretrain_steps", "finetune_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
+                         "pretrain_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
                          "seeds", "generated_extent", "bootstrap")
         if any(n < 1 for n in self.finetune_scenes):
             raise TypError(where, f"{name}.finetune_scenes", "scenario counts >= 1 (0 and all are always run)",
