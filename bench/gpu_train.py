@@ -199,10 +199,17 @@ class Trainer:
 
     def calibrate(self, train: Callable[[int, Callable], object], warmup: int = 2, timed: int = 3) -> float:
         """Steps/s of ``train(steps, log_fn)`` (at least ``warmup + timed`` steps) at the training
-        batch, from the steps after the first ``warmup``."""
+        batch, from the steps after the first ``warmup``. Every step checks the deadline, as training
+        does: at bench/gpu.yaml's sizes a CPU step can take minutes (a CPU smoke run sat in these five
+        steps past its deadline and looked hung)."""
         stamps: list[float] = []
+
+        def log_fn(values: dict, step: int) -> None:
+            stamps.append(time.perf_counter())
+            self.clock.check()
+
         self.clock.check()
-        train(warmup + timed, lambda v, s: stamps.append(time.perf_counter()))
+        train(warmup + timed, log_fn)
         return (len(stamps) - warmup) / max(stamps[-1] - stamps[warmup - 1], 1e-9)
 
     def run_network(self, name: str, per_epoch: int, rate: float, train: Callable[[int, int, Probe], object],
