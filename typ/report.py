@@ -12,6 +12,7 @@ from pathlib import Path
 
 from typ.config import Config
 from typ.io import write_text
+from typ.metrics.intervals import Interval
 
 #: ``evaluate``'s generation rows, as the generation report names them
 GENERATION_ROWS = {"generated": "what `generate` writes", "hybrid": "hybrid (re-simulation + TYP)",
@@ -29,7 +30,7 @@ def iv(cell: dict | None, digits: int = 3) -> str:
         return "—"
     if cell.get("low") is None or cell.get("high") is None:
         return f"{cell['value']:.{digits}f}"
-    return f"{cell['value']:.{digits}f} [{cell['low']:.{digits}f}, {cell['high']:.{digits}f}]"
+    return Interval(cell["value"], cell["low"], cell["high"]).text(digits)
 
 
 def stage_seconds(metrics: dict) -> float | None:
