@@ -76,3 +76,26 @@ def test_scoring_stages_depend_on_the_splits_their_config_reads(profile):
     d = cfg.ddpm
     assert data("ddpm") == {f"{d.input}/{d.domain}/{d.train_split}", f"{d.input}/{d.domain}/{d.test_split}",
                             f"{d.latent.voxels}/dataset={d.domain}/split={d.test_split}"}
+
+
+def test_committed_code_deps_hash_the_sources_alone():
+    """A code folder's hash in dvc.lock covers the files git tracks there and nothing else:
+    the byte code Python writes beside them (``__pycache__``, whose bytes hold the source's
+    mtime) must not make a fresh clone's ``dvc status`` differ from the machine that locked it."""
+    import subprocess
+
+    lock = yaml.safe_load((ROOT / "dvc.lock").read_text())
+    checked = 0
+    for name, stage in lock["stages"].items():
+        for dep in stage.get("deps", []):
+            path = ROOT / dep["path"]
+            if not (path.is_dir() and dep["path"] in FOLDERS):
+                continue
+            tracked = subprocess.run(["git", "ls-files", "-z", dep["path"]], cwd=ROOT, capture_output=True,
+                                     check=True).stdout.split(b"\0")
+            files = [ROOT / f.decode() for f in tracked if f]
+            assert dep["nfiles"] == len(files), (name, dep["path"])
+            assert dep["size"] == sum(f.stat().st_size for f in files), (name, dep["path"])
+            checked += 1
+    assert checked > 0
+    assert "__pycache__/" in (ROOT / ".dvcignore").read_text().split()
