@@ -223,7 +223,7 @@ def _cmd_generate(args) -> int:
     from flows.generate import generate_external
 
     metrics = generate_external(args.format, Path(args.input), Path(args.out), root=root, params=args.params,
-                                references_per_frame=args.references, roadside_units=args.rsu)
+                                references_per_frame=args.references, roadside_units=args.rsu, compose=args.compose)
     print(f"generated {metrics['references']} reference views for {metrics['frames']} frames "
           f"({metrics['skipped_unchanged']} scenarios unchanged) under {args.out}")
     return 0
@@ -344,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="data/generated_external", help="output root (default: data/generated_external)")
     p.add_argument("--references", type=int, default=None, help="reference views per frame (default: params)")
     p.add_argument("--rsu", type=int, default=None, help="roadside units per scenario (default: params)")
+    p.add_argument("--compose", default=None, help="generated | hybrid | cast: what a reference view is made of "
+                                                   "(default: params' generate.compose)")
     p.set_defaults(fn=_cmd_generate)
     p = sub.add_parser("show", help="PNGs of an OPV2V-layout scenario (simulated, generated or real) or a folder of "
                                     "them: each agent from above, all agents side by side, range images, and for "

@@ -50,7 +50,8 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
 
 
 def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, params: str,
-                      references_per_frame: int | None = None, roadside_units: int | None = None) -> dict:
+                      references_per_frame: int | None = None, roadside_units: int | None = None,
+                      compose: str | None = None) -> dict:
     """``typ generate``: KITTI / nuScenes / Waymo frames -> collaborative OPV2V scenarios under ``out``.
 
     The frames are first written as single-agent OPV2V scenarios under
@@ -62,12 +63,14 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     cfg = load_config(root / params)
     block = cfg.generate
     overrides = {k: v for k, v in (("references_per_frame", references_per_frame),
-                                    ("roadside_units", roadside_units)) if v is not None}
+                                    ("roadside_units", roadside_units), ("compose", compose)) if v is not None}
+    if compose is not None and compose not in stage.COMPOSE:
+        raise TypError("typ generate", "--compose", f"one of {list(stage.COMPOSE)}", compose)
     if overrides:
         block = dataclasses.replace(block, **overrides)
         block.check("typ generate", "--references/--rsu")
-    # a real dataset's sensor is not one the re-simulation knows: its reference views are generated
-    block = dataclasses.replace(block, compose="generated")
+    # generate.compose applies as in the stage: hybrid and cast views cast the dataset's LiDAR
+    # preset (typ.sensors), which the single-agent yaml names
     generator = load_generator(root, cfg)
     generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
     gset = GenerateSet(dataset=fmt, split="frames", references="vehicles")

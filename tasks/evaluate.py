@@ -33,7 +33,7 @@ LOG = logging.getLogger(__name__)
 
 GENERATION_REPORT = Path("reports") / "generation_accuracy.md"
 #: the methods whose curves dvc.yaml's plots declare (a method that did not run is an empty column)
-PLOTTED = ("naive_copy", "resim", "stage1_only", "disc_st_dummy", "typ_resim")
+PLOTTED = ("naive_copy", "resim", "stage1_only", "disc_st_dummy", "typ_resim", "hybrid", "cast")
 GALLERY = Path("reports") / "gallery"
 
 ACCURACY_COLUMNS = [("iou", "IoU"), ("iou_0-20", "IoU 0–20 m"), ("iou_20-40", "IoU 20–40 m"),
@@ -98,7 +98,9 @@ def write_generation_report(path: Path, result: dict, *, extra: list[str], galle
         *comparisons(t, [(typ, "naive_copy", "iou"), (typ, "stage1_only", "iou"), (typ, "naive_copy", "iou_above_ground"),
                          (resim_key, "resim", "iou"), *((resim_key, "resim", f"iou_{b}") for b in ("0-20", "20-40", "40-80")),
                          (resim_key, "resim", "iou_unseen"), (resim_key, "resim", "iou_above_ground"),
-                         (typ, "no_adaptation", "jsd_r2dm"), ("disc_st_dummy", "one_stage", "jsd_r2dm")]), "",
+                         (typ, "no_adaptation", "jsd_r2dm"), ("disc_st_dummy", "one_stage", "jsd_r2dm"),
+                         ("cast", "hybrid", "iou"), ("cast", "resim", "iou"),
+                         *(("cast", "resim", f"iou_{b}") for b in ("0-20", "20-40", "40-80", "above_ground"))]), "",
         "## TYP Table 4 analogue: the adaptation ablation", "",
         table({gen.label(k): t[k] for k in (*TABLE4, *([typ] if typ not in TABLE4 else [])) if k in t},
               [("jsd_r2dm", "JSD ↓"), ("mmd_r2dm", "MMD ↓"), ("iou", "IoU ↑")]), "",

@@ -12,7 +12,9 @@ truth. Each method produces the reference view as an occupancy grid and a point 
   ``TYP``: TYP Table 4's rows (:mod:`tasks.selftrain`);
 - ``TYP + re-simulated conditioning``: the adapter sees the re-simulated view beside x_e';
 - ``one-stage``: TYP Table 5's baseline, UNet and adapter trained together on source tuples;
-- ``hybrid``: re-simulation where the ego saw, TYP elsewhere.
+- ``hybrid``: re-simulation where the ego saw, TYP elsewhere;
+- ``cast``: one scene of the ego's surfels and TYP's cells, cast once with the reference LiDAR
+  (:mod:`typ.castview`, ``generate.cast``).
 
 Learned methods are sampled once per training seed (replica); every figure is pooled over
 pairs and given with a bootstrap interval over scenes and seeds (:mod:`tasks.genscore`).
@@ -47,6 +49,7 @@ METHODS = {
     "typ_resim": "TYP + re-simulated conditioning",
     "one_stage": "one-stage (TYP Table 5 baseline)",
     "hybrid": "hybrid: re-simulation where the ego saw, TYP elsewhere",
+    "cast": "cast: the ego's surfels and TYP's cells in one scene, cast with the reference LiDAR",
 }
 
 
@@ -64,6 +67,8 @@ class EvalSet:
     boxes: list[np.ndarray]  # (K, 7) reference vehicles per pair
     ego_points: list[np.ndarray]
     resim_points: list[np.ndarray]
+    ego_origins: list[np.ndarray] = field(default_factory=list)   # (3,) the ego sensor in each reference frame
+    sensor: object = None    # the reference LiDAR (SensorSpec) the pairs were re-simulated with
     truth_stats: list[dict] = field(default_factory=list)
     resim_seconds: float = 0.0
 
@@ -76,7 +81,7 @@ def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None 
     from tasks.generate import EGO_CAR_LWH
 
     rows: dict[str, list] = {k: [] for k in ("scenes", "x_r", "y_r", "x_e", "resim", "seen", "boxes", "ego_points",
-                                              "resim_points")}
+                                              "resim_points", "ego_origins")}
     t0 = time.perf_counter()
     pairs = list(itertools.islice(iter_pairs(split_root, grid, ego_only=True), max_pairs))
     resims = stage2.threaded_map(lambda p: stage2.resimulated_points(p.ego_points, spec, EGO_CAR_LWH), pairs)
@@ -90,10 +95,12 @@ def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None 
         rows["boxes"].append(p.ref_boxes)
         rows["ego_points"].append(p.ego_points)
         rows["resim_points"].append(points)
+        rows["ego_origins"].append(p.ego_pose_in_ref[:3, 3].copy())
     seconds = (time.perf_counter() - t0) / max(len(rows["scenes"]), 1)
     stacked = {k: np.stack(rows[k]) for k in ("x_r", "y_r", "x_e", "resim", "seen")}
     out = EvalSet(grid, rows["scenes"], **stacked, boxes=rows["boxes"], ego_points=rows["ego_points"],
-                  resim_points=rows["resim_points"], resim_seconds=seconds)
+                  resim_points=rows["resim_points"], ego_origins=rows["ego_origins"], sensor=spec,
+                  resim_seconds=seconds)
     out.truth_stats = [genscore.true_view_stats(x, grid) for x in out.x_r]
     return out
 
@@ -109,6 +116,20 @@ def sample_method(pipe: TYPPipeline, data: EvalSet, seed: int) -> tuple[np.ndarr
     occ = pipe.occupancy(data.x_e, data.y_r, seed=seed, resim=data.resim if pipe.conditions == 2 else None)
     points = [pipe.points(o, data.grid, seed + i) for i, o in enumerate(occ)]
     return occ, points, (time.perf_counter() - t0) / max(len(data), 1)
+
+
+def cast_views(data: EvalSet, occupancy: np.ndarray, params, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(occupancy, points) of the cast views of every pair (:func:`typ.castview.cast_view`) built
+    on the generated ``occupancy`` (P, C, H, W), as ``generate.compose: cast`` builds them."""
+    from tasks.generate import EGO_CAR_LWH
+    from typ.castview import cast_view
+
+    own = stage2.own_car_box(data.sensor, EGO_CAR_LWH)
+    points = list(stage2.threaded_map(
+        lambda i: cast_view(data.ego_points[i], occupancy[i], data.grid, data.sensor, np.random.default_rng([seed, i, 2]),
+                            params=params, ego_origin=data.ego_origins[i], label_boxes=data.boxes[i],
+                            exclude_boxes=own, mask=data.seen[i]), range(len(data))))
+    return np.stack([voxelize(p, data.grid).transpose(2, 0, 1) for p in points]), points
 
 
 def pipelines(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> dict[str, TYPPipeline]:
@@ -156,6 +177,10 @@ def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int =
                 hyb_points = [hybrid_points(data.resim_points[i][:, :3], points[i][:, :3], data.seen[i], data.grid)
                               for i in range(len(data))]
                 scores.setdefault("hybrid", []).append(score_method(data, hyb, hyb_points))
+                t0 = time.perf_counter()
+                cast_occ, cast_points = cast_views(data, occ, cfg.generate.cast, seed)
+                seconds["cast"] = (time.perf_counter() - t0) / max(len(data), 1)
+                scores.setdefault("cast", []).append(score_method(data, cast_occ, cast_points))
                 # sample-to-sample spread: the same pairs with other noise
                 other, _, _ = sample_method(pipe, data, seed + 7919)
                 spread.append(genscore.pairwise_iou(occ, other))

@@ -19,7 +19,9 @@ TABLE1_ROWS = {"ego": "ego's gt only", "oracle": "gt (oracle)", "generated": "TY
 #: ``generate.compose`` values, as the report explains them
 COMPOSE_TEXT = {"generated": "TYP's sample alone",
                 "hybrid": "the ego's cloud re-simulated from the cooperating pose where the ego saw, TYP's sample "
-                          "elsewhere"}
+                          "elsewhere",
+                "cast": "one scene of the ego's surfaces where it saw and TYP's cells elsewhere, cast with the "
+                        "cooperating agent's LiDAR"}
 PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)"}
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from tasks.pipeline import TYPPipeline
-from typ.config import GenerateConfig, GenerateSet, as_dict
+from typ.config import CastConfig, GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
@@ -37,7 +37,7 @@ SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_witho
 #: the ego's own car, which the ego's labels never contain but a reference sees
 EGO_CAR_LWH = (4.5, 1.85, 1.5)
 #: ``generate.compose``: what a reference view is made of (:class:`typ.config.GenerateConfig`)
-COMPOSE = ("generated", "hybrid")
+COMPOSE = ("generated", "hybrid", "cast")
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,7 @@ class Reference:
     x_e: np.ndarray         # (C, H, W) bool, x_e'
     y_r: np.ndarray         # (1, H, W) bool
     ego_points: np.ndarray  # (N, 4) the ego's cloud in the reference frame (x_e' before voxelization)
+    ego_origin: np.ndarray  # (3,) float64 the ego sensor's position in the reference frame
 
 
 def candidate_ids(ego: AgentView, cfg, skipped: dict[str, int]) -> set[int]:
@@ -115,7 +116,8 @@ def reference_at(ego: AgentView, ref_pose: np.ndarray, agent_id: str, exclude_id
     ids = np.concatenate([ego.box_ids[keep], [ego_numeric]])
     moved = points_to_reference(ego.points, ego.pose, ref_pose)
     return Reference(agent_id, np.asarray(ref_pose, dtype=np.float64), boxes, labels, ids,
-                     voxelize(moved, grid).transpose(2, 0, 1), box_map(boxes, grid).transpose(2, 0, 1), moved)
+                     voxelize(moved, grid).transpose(2, 0, 1), box_map(boxes, grid).transpose(2, 0, 1), moved,
+                     (invert(in_ego) @ np.array([0.0, 0.0, 0.0, 1.0]))[:3])
 
 
 def roadside_poses(ego: AgentView, cfg: GenerateConfig, rng: np.random.Generator,
@@ -160,30 +162,30 @@ def cav_references(scene: Scene, grid: Grid) -> list[Reference]:
     return refs
 
 
-def needs_resimulation(pipe: TYPPipeline, compose: str) -> bool:
-    """Whether :func:`generate_points` re-simulates the ego's cloud (and needs the sensor): for a
-    re-simulation-conditioned generator, or to compose hybrid views."""
+def needs_sensor(pipe: TYPPipeline, compose: str) -> bool:
+    """Whether :func:`generate_points` casts the reference sensor: to re-simulate the ego's
+    cloud for a re-simulation-conditioned generator or a hybrid view, or to cast a cast view."""
     if compose not in COMPOSE:
         raise TypError("params.yaml", "generate.compose", f"one of {COMPOSE}", compose)
-    return pipe.conditions == 2 or compose == "hybrid"
+    return pipe.conditions == 2 or compose in ("hybrid", "cast")
 
 
 def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: int, *,
-                    sensor=None, compose: str = "generated") -> list[np.ndarray]:
+                    sensor=None, compose: str = "generated", cast: CastConfig = CastConfig()) -> list[np.ndarray]:
     """Batched sampling for all references of a scenario: (N, 4) float32 clouds in each
     reference's sensor frame (``grid``: that sensor's grid), with the domain's point density
     and intensity (:func:`tasks.pipeline.occupancy_to_points`). ``sensor``: the reference
-    sensor (SensorSpec) re-simulation casts with, needed by a re-simulation-conditioned
-    generator and by ``compose="hybrid"`` (:class:`typ.config.GenerateConfig`), whose
-    re-simulated points get intensities drawn as the generated ones."""
+    sensor (SensorSpec) re-simulation and cast views cast with (:func:`needs_sensor`); the
+    points typ casts get intensities drawn as the generated ones. ``compose``, ``cast``: what a
+    view is made of (:class:`typ.config.GenerateConfig`)."""
     from tasks.pipeline import draw_intensities
-    from tasks.stage2 import resimulated_points, threaded_map
+    from tasks.stage2 import own_car_box, resimulated_points, threaded_map
     from typ.resim import coverage_mask, hybrid_points
 
+    if needs_sensor(pipe, compose) and sensor is None:
+        raise TypError("tasks.generate", "sensor", "the reference sensor re-simulation and cast views cast with", None)
     resim_points = None
-    if needs_resimulation(pipe, compose):
-        if sensor is None:
-            raise TypError("tasks.generate", "sensor", "the reference sensor re-simulation casts with", None)
+    if pipe.conditions == 2 or compose == "hybrid":
         resim_points = list(threaded_map(lambda r: resimulated_points(r.ego_points, sensor, EGO_CAR_LWH), refs))
     resim = None
     if pipe.conditions == 2:
@@ -195,6 +197,18 @@ def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: 
                                                  np.random.default_rng([seed, k, 1])),
                                 clouds[k], coverage_mask(r.ego_points, grid), grid)
                   for k, r in enumerate(refs)]
+    elif compose == "cast":
+        from typ.castview import cast_view
+
+        own = own_car_box(sensor, EGO_CAR_LWH)
+
+        def one(k: int) -> np.ndarray:
+            r = refs[k]
+            xyz = cast_view(r.ego_points, occupancy[k], grid, sensor, np.random.default_rng([seed, k, 2]), params=cast,
+                            ego_origin=r.ego_origin, label_boxes=r.boxes[vehicle_mask(r.labels)], exclude_boxes=own)
+            return draw_intensities(xyz, grid, pipe.point_stats, np.random.default_rng([seed, k, 1]))
+
+        clouds = list(threaded_map(one, range(len(refs))))
     return clouds
 
 
@@ -239,12 +253,17 @@ def _scenario_state(item: tuple[GenerateSet, Path], cfg: GenerateConfig, generat
     """(output folder, grid, key, result fields, the skipped result when the stored output has the key)."""
     gset, folder = item
     target = out / gset.dataset / gset.split / folder.name
-    grid = generator.grid(scenario_sensor(folder) or gset.dataset)
+    grid = generator.grid(_sensor_name(folder, gset))
     key = scenario_key(folder, gset, cfg, generator.digest, grid)
     base = {"scenario": f"{gset.dataset}/{gset.split}/{folder.name}", "set": f"{gset.dataset}/{gset.split}"}
     manifest = read_json_or_none(target / MANIFEST)
     done = {**base, "skipped": "unchanged", **manifest["counts"]} if manifest and manifest.get("key") == key else None
     return target, grid, key, base, done
+
+
+def _sensor_name(folder: Path, gset: GenerateSet) -> str:
+    """The LiDAR of a scenario's ego: the one its yaml names (a real dataset typ read), else its dataset's."""
+    return scenario_sensor(folder) or gset.dataset
 
 
 def unchanged(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generator: "Generator", out: Path) -> dict | None:
@@ -287,9 +306,10 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
         # an empty view is still written (every agent has a view at every timestamp); counted
         skipped["reference_view_empty"] += sum(not r.x_e.any() and not r.y_r.any() for r in refs)
     all_refs = [r for _, refs in frames for r in refs]
-    sensor = generator.sensor(gset.dataset) if all_refs and needs_resimulation(generator.pipe, cfg.compose) else None
-    clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose)
-                  if all_refs else [])
+    sensor = generator.sensor(_sensor_name(folder, gset)) if all_refs and needs_sensor(generator.pipe, cfg.compose) \
+        else None
+    clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose,
+                                  cast=cfg.cast) if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
     with atomic_path(target, stage=STAGE) as tmp:
         tmp.mkdir(parents=True)
@@ -343,12 +363,16 @@ class Generator:
         return self.pipe.grid.for_sensor(mount_height(dataset, self.mount_height))
 
     def sensor(self, dataset: str):
-        """The sensor re-simulation casts with in ``dataset``'s reference views (a re-simulation-
-        conditioned generator, or ``generate.compose: hybrid``): a simulated domain's."""
+        """The LiDAR re-simulation and cast views cast with in ``dataset``'s reference views (a
+        re-simulation-conditioned generator, ``generate.compose: hybrid`` or ``cast``): a simulated
+        domain's (at the simulator's azimuth step) or a real dataset's preset (:mod:`typ.sensors`)."""
+        from typ.sensors import SENSORS
         from typ.sim.sensor import DOMAINS, domain_spec
 
-        if dataset not in DOMAINS:
+        if dataset in DOMAINS:
+            return domain_spec(dataset, azimuth_step_deg=self.azimuth_step_deg).sensor
+        if dataset not in SENSORS:
             raise TypError("params.yaml", "selftrain.generator / generate.compose",
-                           f"typ and generated for dataset {dataset!r}: re-simulation casts with a known sensor "
-                           f"(one of {sorted(DOMAINS)})", dataset)
-        return domain_spec(dataset, azimuth_step_deg=self.azimuth_step_deg).sensor
+                           f"a known LiDAR for dataset {dataset!r}: re-simulation and cast views cast with it "
+                           f"(one of {sorted(SENSORS)})", dataset)
+        return SENSORS[dataset]

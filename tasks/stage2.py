@@ -70,9 +70,14 @@ def resimulated_points(ego_points: np.ndarray, spec, ego_car_lwh=(4.5, 1.85, 1.5
     own body (``ego_car_lwh`` around the sensor, enlarged by ``OWN_CAR_MARGIN``) left out."""
     from typ.resim import resimulate
 
+    return resimulate(np.asarray(ego_points)[:, :3], spec, exclude_boxes=own_car_box(spec, ego_car_lwh))
+
+
+def own_car_box(spec, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
+    """(1, 7) the body of the vehicle carrying ``spec`` in its sensor frame, enlarged by
+    ``OWN_CAR_MARGIN``: the ego saw it, the reference LiDAR on its roof does not."""
     l, w, h = ego_car_lwh
-    own_car = np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
-    return resimulate(np.asarray(ego_points)[:, :3], spec, exclude_boxes=own_car)
+    return np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
 
 
 def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:

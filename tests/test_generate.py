@@ -84,7 +84,7 @@ def test_hybrid_views_are_resimulated_where_the_ego_saw_and_generated_elsewhere(
         moved = points_to_reference(ego.points, np.eye(4), pose)
         refs.append(Reference(f"r{x:g}", pose, np.zeros((0, 7)), (), np.zeros(0, np.int64),
                               voxelize(moved, grid).transpose(2, 0, 1), box_map(np.zeros((0, 7)), grid).transpose(2, 0, 1),
-                              moved))
+                              moved, np.linalg.inv(pose)[:3, 3]))
     pipe = _pipeline()
     plain = generate_points(refs, pipe, grid, 5)
     mixed = generate_points(refs, pipe, grid, 5, sensor=spec, compose="hybrid")
@@ -107,3 +107,16 @@ def test_hybrid_views_are_resimulated_where_the_ego_saw_and_generated_elsewhere(
     with pytest.raises(TypError) as err:
         generate_points(refs, pipe, grid, 5, sensor=spec, compose="mixed")
     assert err.value.field == "generate.compose"
+    # cast: one scan of the reference LiDAR, every point on one of its beams, the same bytes again
+    from typ.sensors import on_beam_fractions
+
+    cast = generate_points(refs, pipe, grid, 5, sensor=spec, compose="cast")
+    assert all(np.array_equal(a, b) for a, b in zip(cast, generate_points(refs, pipe, grid, 5, sensor=spec,
+                                                                           compose="cast")))
+    for ref, c in zip(refs, cast):
+        assert c.dtype == np.float32 and c.shape[1] == 4 and len(c) > 1000
+        assert on_beam_fractions(c, spec, (0.05,), min_range=1.0)[0.05] > 0.999
+        assert np.linalg.norm(c[:, :3], axis=1).max() <= spec.max_range + 3 * spec.range_noise_std + 1e-3
+    with pytest.raises(TypError) as err:
+        generate_points(refs, pipe, grid, 5, compose="cast")
+    assert err.value.field == "sensor"

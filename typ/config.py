@@ -598,6 +598,27 @@ class GenerateSet:
 
 
 @dataclass(frozen=True)
+class CastConfig:
+    """The scene a cast reference view is cast from (``generate.compose: cast``, :mod:`typ.castview`);
+    ``reports/generation_ablation.md`` measures each choice."""
+
+    #: labelled vehicles (y_r) as closed boxes, each edge scaled by this; 0: none
+    label_boxes: float = 0.9
+    #: the road surface lies under ``generated`` ground voxels only, every cell the ego did not
+    #: see (``unseen``) or ``everywhere`` (under the ego's surfels too)
+    road: Literal["generated", "unseen", "everywhere"] = "unseen"
+    #: drop generated voxels an ego ray crossed before its return: the ego saw them empty
+    carve: bool = True
+
+    def check(self, where: str, name: str) -> None:
+        if isinstance(self.label_boxes, bool) or not isinstance(self.label_boxes, (int, float)) \
+                or not 0.0 <= self.label_boxes <= 2.0:
+            raise TypError(where, f"{name}.label_boxes", "a scale in [0, 2] (0: no label boxes)", self.label_boxes)
+        if not isinstance(self.carve, bool):
+            raise TypError(where, f"{name}.carve", "true or false", self.carve)
+
+
+@dataclass(frozen=True)
 class GenerateConfig:
     """Stage ``generate`` (TYP §4.5): reference views for single-agent frames, written as OPV2V agents."""
 
@@ -617,11 +638,15 @@ class GenerateConfig:
     workers: int
     #: what a reference view is made of: ``generated`` — the generator's sample alone (TYP);
     #: ``hybrid`` — the ego's cloud re-simulated from the reference pose in the BEV cells the ego
-    #: saw, the generator's sample elsewhere (the ``hybrid`` row of reports/generation_accuracy.md)
-    compose: Literal["generated", "hybrid"] = "generated"
+    #: saw, the generator's sample elsewhere (the ``hybrid`` row of reports/generation_accuracy.md);
+    #: ``cast`` — one scene of both (the ego's surfels, the generated cells), cast once with the
+    #: reference LiDAR (:mod:`typ.castview`, shaped by ``cast``)
+    compose: Literal["generated", "hybrid", "cast"] = "generated"
+    cast: CastConfig = dataclasses.field(default_factory=CastConfig)
 
     def check(self, where: str, name: str) -> None:
         _positive_fields(self, where, name, "references_per_frame", "sample_steps", "max_distance", "workers")
+        self.cast.check(where, f"{name}.cast")
         if self.roadside_units < 0:
             raise TypError(where, f"{name}.roadside_units", "a count >= 0", self.roadside_units)
         if not 0 <= self.min_distance < self.max_distance:

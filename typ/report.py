@@ -15,7 +15,8 @@ from typ.io import write_text
 from typ.metrics.intervals import Interval
 
 #: ``evaluate``'s generation rows, as the generation report names them
-GENERATION_ROWS = {"generated": "what `generate` writes", "hybrid": "hybrid (re-simulation + TYP)",
+GENERATION_ROWS = {"generated": "what `generate` writes", "cast": "cast view (one scene, the reference LiDAR)",
+                   "hybrid": "hybrid (re-simulation + TYP)",
                    "disc_st_dummy": "TYP (stage 1 + 2, self-trained)", "typ_resim": "TYP, re-simulation training",
                    "stage1_only": "stage 1 alone", "resim": "re-simulation", "naive_copy": "copy the ego's view"}
 GENERATION_KEYS = (("iou", "IoU"), ("iou_above_ground", "above ground"), ("object_hit_rate", "hit rate"),
