@@ -376,6 +376,9 @@ def test_generate_from_real_kitti_frames_through_the_cli(project, tmp_path):
     assert "(2 scenarios unchanged)" in again.stdout  # same frames, params and models: nothing regenerated
     bad = _run([str(VENV_BIN / "typ"), "generate", "--format", "lyft", "--input", str(KITTI)], proj, env, check=False)
     assert bad.returncode == 2 and "--format: expected one of" in bad.stderr
+    bad = _run([str(VENV_BIN / "typ"), "generate", "--format", "kitti", "--input", str(KITTI), "--out", str(out),
+                "--compose", "mixed"], proj, env, check=False)
+    assert bad.returncode == 2 and "--compose: expected one of" in bad.stderr
 
 
 def test_edit_regenerates_only_the_edited_footprint(project, tmp_path):
