@@ -296,9 +296,12 @@ def test_generated_dataset_is_opv2v_with_a_second_agent(project):
                 # the reference stands on a labelled vehicle of the ego's frame
                 assert agent_id.startswith(ego_id)
                 assert int(agent_id[len(ego_id):]) in set(original.ego.box_ids.tolist())
-                # points in the reference sensor's own frame (2.2 m up), spread inside their
-                # voxels (not on the 0.8 m centres), with the domain's intensities
-                assert pts[:, 2].min() >= -2.2 - 0.75 - 1e-4 and pts[:, 2].max() < 3.25 - 2.2
+                # a cast view (tiny's generate.compose): one scan of the reference sensor (the
+                # target domain's, 2.2 m up) in its own frame, every point on one of its beams, off
+                # the 0.8 m voxel centres, with the domain's intensities
+                from typ.sensors import SENSORS, on_beam_fractions
+
+                assert on_beam_fractions(pts, SENSORS["target"], (0.05,), min_range=1.0)[0.05] > 0.999
                 assert len(np.unique(np.round(pts[:, 0] / 0.8 - 0.5, 6) % 1.0)) > 10
                 assert pts[:, 3].std() > 0
     assert gen["target_pretrain"]["references"] >= 1
@@ -313,7 +316,9 @@ def test_generated_dataset_is_opv2v_with_a_second_agent(project):
         for agent_id in generated:
             assert np.array_equal(made.agents[agent_id].pose, truth.agents[agent_id].pose)
             assert not np.array_equal(made.agents[agent_id].points, truth.agents[agent_id].points)
-            assert made.agents[agent_id].points[:, 2].min() >= -1.8 - 0.75 - 1e-4  # real_cav's sensor height
+            # a scan of real_cav's own LiDAR (1.8 m up) from the CAV's pose
+            assert on_beam_fractions(made.agents[agent_id].points, SENSORS["real_cav"], (0.05,),
+                                     min_range=1.0)[0.05] > 0.999
 
 
 def test_fusion_benchmark_trains_every_method_on_oracle_and_generated_cavs(project):
