@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from tasks import evaluate_generation as gen
-from tasks import genscore, selftrain
+from tasks import genscore, realism, selftrain
 from typ.io import write_text
 from typ.metrics.intervals import Interval
 
@@ -65,10 +65,10 @@ def comparisons(table_: dict[str, dict[str, Interval]], pairs: list[tuple[str, s
     for ``chamfer_m`` / ``jsd_r2dm`` / ``mmd_r2dm`` lower is)."""
     lines = []
     for a, b, fig in pairs:
-        if a not in table_ or b not in table_:
+        if fig not in table_.get(a, {}) or fig not in table_.get(b, {}):
             continue
         x, y = table_[a][fig], table_[b][fig]
-        lower = fig in ("chamfer_m", "jsd_r2dm", "mmd_r2dm")
+        lower = fig in ("chamfer_m", "jsd_r2dm", "mmd_r2dm") or realism.LOWER_IS_BETTER.get(fig, False)
         wins = (y.low > x.high) if lower else x.above(y)
         verdict = "**beats**" if wins else "does not beat"
         lines.append(f"- {gen.label(a)} {verdict} {gen.label(b)} on {fig}: {cell(x)} vs {cell(y)}")
@@ -116,10 +116,39 @@ def write_generation_report(path: Path, result: dict, *, extra: list[str], galle
         f"Sample-to-sample agreement of TYP (pooled IoU between two noise seeds of the same pairs): "
         f"{result['spread_iou']:.3f} (1 would mean the sample ignores its noise)." if result["spread_iou"] is not None
         else "", "",
+        *realism_section(result), "",
         *extra, "",
         gallery_md,
     ]
     return write_text(path, "\n".join(text) + "\n") or path
+
+
+REALISM_COLUMNS = [("on_beam", "on a beam ±0.05° ↑"), ("row_profile_l1", "row profile L1 ↓"),
+                   ("frid", "FRID† ↓"), ("fpvd", "FPVD† ↓")]
+
+
+def realism_section(result: dict) -> list[str]:
+    """The scan-pattern realism table (:mod:`tasks.realism`) and what beats what in it."""
+    r = result["realism"]
+    rows = {"true reference scan": r["truth"], **{gen.label(k): r[k] for k in [*gen.METHODS, *r] if k in r and k != "truth"}}
+    floor = result["realism_floor"]
+    layout = result["layout"]
+    missing = result.get("realism_missing")
+    return [
+        "## Scan pattern and realism (the same pairs, against the true reference scans)", "",
+        f"On a beam: the share of a view's points within ±{realism.ON_BEAM_DEG}° of one of the reference LiDAR's "
+        f"{layout.height} beam elevations, seen from the beam's origin. Row profile L1: per beam row of the sensor's "
+        f"{layout.height} x {layout.width} range image, the share of azimuth bins with a return, averaged over the "
+        "views; the mean absolute difference from the true scans' profile over rows (`reports/plots/row_profile.csv`). "
+        "FRID† / FPVD†: Fréchet distances between the true and the generated views in the feature spaces of the "
+        "range-image and voxel networks the `ddpm` stage trains (typ's own small networks, not LiDM's: compare "
+        "rows of this table, not other papers' figures). Intervals: 95 % bootstrap over scenes and seeds.", "",
+        table(rows, REALISM_COLUMNS), "",
+        *([f"FRID / FPVD not scored: {missing}.", ""] if missing else []),
+        *([f"Two halves of the true scans (alternate scenes) score FRID {floor['frid']:.3f}, FPVD {floor['fpvd']:.3f} "
+           "against each other: the floor of a set of this size.", ""] if floor else []),
+        *comparisons(r, [(k, "resim", fig) for k in ("cast", "hybrid") for fig, _ in REALISM_COLUMNS]),
+    ]
 
 
 from dataclasses import dataclass, field  # noqa: E402
@@ -242,7 +271,10 @@ def generation_section(cfg, root: Path, x_vq, y_encoder, extra: list[str], *, ru
     generator = TYPPipeline.from_pretrained(generator_dir(root / block.selftrain, cfg.stage1.seed))
     data = gen.build_eval_set(root / block.sim / block.target_domain / block.target_split, grid, spec,
                               max_pairs=block.max_pairs or None)
-    result = gen.run(cfg, root, data, x_vq, y_encoder, generator.point_stats, n_boot=block.n_boot)
+    nets = realism.load_feature_nets(root / cfg.ddpm.out / "features")
+    if isinstance(nets, str):
+        LOG.warning("evaluate: FRID / FPVD of generated views not scored: %s", nets)
+    result = gen.run(cfg, root, data, x_vq, y_encoder, generator.point_stats, n_boot=block.n_boot, feature_nets=nets)
     samples = gallery_samples(data, result, block.gallery)
     gallery_md = gallery(samples, root / GALLERY, grid, link_prefix="gallery/",
                          title="Generated reference views beside the truth") if samples else ""
@@ -251,8 +283,14 @@ def generation_section(cfg, root: Path, x_vq, y_encoder, extra: list[str], *, ru
     bands = plots.bands(reports / "plots" / "iou_by_band.csv", genscore.BANDS,
                         {k: [t[k][f"iou_{genscore.band_label(*b)}"].value if k in t else float("nan")
                              for b in genscore.BANDS] for k in PLOTTED})
+    profiles = result["row_profiles"]
+    rows_csv = plots.write_table(reports / "plots" / "row_profile.csv", {
+        "elevation_deg": [round(e, 4) for e in result["layout"].elevations_deg],
+        **{k: profiles[k] for k in ("truth", *PLOTTED)}})
     metrics = {"pairs": result["pairs"], "scenes": result["scenes"], "seeds": result["seeds"],
                "generation": intervals_json(result["table"]), "spread_iou": result["spread_iou"],
+               "realism": intervals_json(result["realism"]),
+               "realism_truth_floor": {k: round(v, 6) for k, v in result["realism_floor"].items()},
                "seconds_per_view": {k: round(v, 4) for k, v in result["seconds"].items()}}
     if run is not None:
         rows = [{"method": gen.label(k), **{f: round(iv.value, 5) for f, iv in v.items()}}
@@ -264,7 +302,7 @@ def generation_section(cfg, root: Path, x_vq, y_encoder, extra: list[str], *, ru
             run.artifact(root / GALLERY / f"{safe_name(s['name'])}.png", "gallery")
     lines = comparisons(result["table"], [(result["typ"], "naive_copy", "iou"), (result["typ"], "stage1_only", "iou"),
                                           (result["resim_key"], "resim", "iou")])
-    return metrics, [report, bands], lines
+    return metrics, [report, bands, rows_csv], lines
 
 
 def fusion_section(cfg, root: Path) -> tuple[dict, list[Path], list[str]]:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks import genscore, stage1, stage2
+from tasks import genscore, realism, stage1, stage2
 from tasks.pairs import iter_pairs
 from tasks.pipeline import TYPPipeline
 from tasks.selftrain import base_pipeline, resim_variant, variant_of, variants_to_run
@@ -68,6 +68,7 @@ class EvalSet:
     ego_points: list[np.ndarray]
     resim_points: list[np.ndarray]
     ego_origins: list[np.ndarray] = field(default_factory=list)   # (3,) the ego sensor in each reference frame
+    ref_points: list[np.ndarray] = field(default_factory=list)    # (M, 4) the true reference scans
     sensor: object = None    # the reference LiDAR (SensorSpec) the pairs were re-simulated with
     truth_stats: list[dict] = field(default_factory=list)
     resim_seconds: float = 0.0
@@ -81,7 +82,7 @@ def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None 
     from tasks.generate import EGO_CAR_LWH
 
     rows: dict[str, list] = {k: [] for k in ("scenes", "x_r", "y_r", "x_e", "resim", "seen", "boxes", "ego_points",
-                                              "resim_points", "ego_origins")}
+                                              "resim_points", "ego_origins", "ref_points")}
     t0 = time.perf_counter()
     pairs = list(itertools.islice(iter_pairs(split_root, grid, ego_only=True), max_pairs))
     resims = stage2.threaded_map(lambda p: stage2.resimulated_points(p.ego_points, spec, EGO_CAR_LWH), pairs)
@@ -96,10 +97,12 @@ def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None 
         rows["ego_points"].append(p.ego_points)
         rows["resim_points"].append(points)
         rows["ego_origins"].append(p.ego_pose_in_ref[:3, 3].copy())
+        rows["ref_points"].append(p.ref_points)
     seconds = (time.perf_counter() - t0) / max(len(rows["scenes"]), 1)
     stacked = {k: np.stack(rows[k]) for k in ("x_r", "y_r", "x_e", "resim", "seen")}
     out = EvalSet(grid, rows["scenes"], **stacked, boxes=rows["boxes"], ego_points=rows["ego_points"],
-                  resim_points=rows["resim_points"], ego_origins=rows["ego_origins"], sensor=spec,
+                  resim_points=rows["resim_points"], ego_origins=rows["ego_origins"],
+                  ref_points=rows["ref_points"], sensor=spec,
                   resim_seconds=seconds)
     out.truth_stats = [genscore.true_view_stats(x, grid) for x in out.x_r]
     return out
@@ -155,20 +158,29 @@ def pipelines(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> dict[str, T
     return out
 
 
-def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int = 1000) -> dict:
-    """Scores and intervals of every method; the TYP variant the switches name is ``typ``."""
+def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int = 1000, feature_nets=None) -> dict:
+    """Scores and intervals of every method; the TYP variant the switches name is ``typ``.
+
+    feature_nets: the ``ddpm`` stage's FRID / FPVD networks (:func:`tasks.realism.load_feature_nets`),
+    or the reason there are none (a str): the realism table then leaves FRID / FPVD out.
+    """
     seeds = stage1.replica_seeds(cfg.stage1.seed, cfg.stage1.replicas)
     scores: dict[str, list[list[genscore.PairScore]]] = {}
     seconds: dict[str, float] = {"re-simulation": data.resim_seconds}
     samples: dict[str, np.ndarray] = {}
+    nets = None if isinstance(feature_nets, str) else feature_nets
+    pattern = realism.RealismScorer(data.sensor, data.scenes, data.ref_points, nets)
     scores["naive_copy"] = [score_method(data, data.x_e > 0.5, data.ego_points)]
     scores["resim"] = [score_method(data, data.resim > 0.5, data.resim_points)]
+    pattern.add("naive_copy", data.ego_points)
+    pattern.add("resim", data.resim_points)
     typ_key = variant_of(cfg.selftrain).name
     spread = []
     for seed in seeds:
         for name, pipe in pipelines(cfg, root, seed, x_vq, y_encoder, stats).items():
             occ, points, sec = sample_method(pipe, data, seed)
             scores.setdefault(name, []).append(score_method(data, occ, points))
+            pattern.add(name, points)
             seconds[name] = sec
             if seed == seeds[0]:
                 samples[name] = occ
@@ -177,10 +189,12 @@ def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int =
                 hyb_points = [hybrid_points(data.resim_points[i][:, :3], points[i][:, :3], data.seen[i], data.grid)
                               for i in range(len(data))]
                 scores.setdefault("hybrid", []).append(score_method(data, hyb, hyb_points))
+                pattern.add("hybrid", hyb_points)
                 t0 = time.perf_counter()
                 cast_occ, cast_points = cast_views(data, occ, cfg.generate.cast, seed)
                 seconds["cast"] = (time.perf_counter() - t0) / max(len(data), 1)
                 scores.setdefault("cast", []).append(score_method(data, cast_occ, cast_points))
+                pattern.add("cast", cast_points)
                 # sample-to-sample spread: the same pairs with other noise
                 other, _, _ = sample_method(pipe, data, seed + 7919)
                 spread.append(genscore.pairwise_iou(occ, other))
@@ -189,7 +203,10 @@ def run(cfg, root: Path, data: EvalSet, x_vq, y_encoder, stats, *, n_boot: int =
     table = {name: genscore.summarize(rows, data.scenes, truth_h, truth_c, n_boot=n_boot) for name, rows in scores.items()}
     return {"table": table, "seconds": seconds, "samples": samples, "typ": typ_key, "seeds": seeds,
             "resim_key": resim_variant(cfg.selftrain).name, "spread_iou": float(np.mean(spread)) if spread else None,
-            "pairs": len(data), "scenes": len(set(data.scenes))}
+            "pairs": len(data), "scenes": len(set(data.scenes)),
+            "realism": pattern.summarize(n_boot=n_boot), "realism_floor": pattern.truth_floor(),
+            "realism_missing": feature_nets if isinstance(feature_nets, str) else None,
+            "row_profiles": pattern.profiles(list(METHODS)), "layout": pattern.layout}
 
 
 def label(key: str) -> str:

@@ -9,6 +9,7 @@ from tasks import evaluate_generation as gen
 from tasks import stage1
 from typ.config import config_from_dict
 from typ.metrics.intervals import Interval
+from typ.projection import RangeLayout
 
 
 class _Base:
@@ -65,7 +66,9 @@ def test_the_report_says_which_table_rows_were_not_trained(tmp_path, ablation):
         methods += ["no_adaptation", "disc", "disc_st", "one_stage"]
     table = {m: {f: Interval(0.1 + 0.01 * i, 0.05, 0.2) for f in figures} for i, m in enumerate(methods)}
     result = {"table": table, "typ": "disc_st_dummy", "resim_key": "typ_resim", "pairs": 4, "scenes": 2,
-              "seeds": [0], "seconds": {"stage1_only": 0.1}, "spread_iou": 0.3}
+              "seeds": [0], "seconds": {"stage1_only": 0.1}, "spread_iou": 0.3,
+              "realism": {m: {"on_beam": Interval(0.9, 0.8, 1.0)} for m in ["truth", *methods]}, "realism_floor": {},
+              "realism_missing": "no networks", "layout": RangeLayout((-10.0, 0.0, 2.0), 8, 50.0, 1.0)}
     text = write_generation_report(tmp_path / "r.md", result, extra=[]).read_text()
     table4 = text.split("## TYP Table 4")[1].split("## TYP Table 5")[0]
     table5 = text.split("## TYP Table 5")[1]
@@ -73,6 +76,8 @@ def test_the_report_says_which_table_rows_were_not_trained(tmp_path, ablation):
     assert ("stage2.one_stage: true" in table5) is not ablation
     assert table4.count("\n| ") == (1 + 4 if ablation else 1 + 1)  # header + one row per method
     assert gen.label("one_stage") in table5 if ablation else gen.label("one_stage") not in table5
+    realism = text.split("## Scan pattern and realism")[1]
+    assert realism.count("\n| ") == 2 + len(methods) and "3 x 8 range image" in realism
 
 
 def test_the_one_stage_model_samples_as_every_other_row(tmp_path, monkeypatch):

@@ -201,6 +201,7 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
     from tasks.evaluate_generation import METHODS
     from tasks.pairs import iter_pairs
     from typ.config import load_config
+    from typ.sim.sensor import domain_spec
 
     proj, _, _ = project
     ev = json.loads((proj / "metrics" / "evaluate.json").read_text())
@@ -221,6 +222,15 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
         # density): at this budget the generators learn the ground layer (IoU 0.13, precision 0.25)
         assert figures["iou"]["value"] > 2 * trivial and figures["precision"]["value"] > 3 * trivial, method
     assert ev["adaptation"]["before"]["jsd_r2dm"] > 0 and "jsd_change" in ev["adaptation"]
+    # scan-pattern realism of every method against the true scans, FRID / FPVD with the ddpm stage's networks
+    real = ev["realism"]
+    assert set(real) == {"truth", *METHODS}
+    assert real["truth"]["on_beam"]["value"] > 0.99 and real["cast"]["on_beam"]["value"] > 0.99
+    assert real["stage1_only"]["on_beam"]["value"] < 0.9          # voxel-sampled points are off the beams
+    assert real["truth"]["frid"]["value"] < 1e-9 < real["stage1_only"]["frid"]["value"]
+    assert real["cast"]["row_profile_l1"]["value"] < real["stage1_only"]["row_profile_l1"]["value"]
+    profile = (proj / "reports" / "plots" / "row_profile.csv").read_text().splitlines()
+    assert profile[0].startswith("elevation_deg,truth,naive_copy") and len(profile) == 1 + domain_spec("target").sensor.n_beams
     report = (proj / "reports" / "generation_accuracy.md").read_text()
     assert "Table 4" in report and "Table 5" in report and all(f"| {row}" in report for row in METHODS.values())
     assert "](gallery/" in report
@@ -230,7 +240,7 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
     assert band[0].startswith("range_m,band,naive_copy") and len(band) == 4
     shown = _run([str(VENV_BIN / "dvc"), "plots", "show", "--json"], proj, project[1])
     rendered = json.loads(shown.stdout)
-    for plot in ("iou_by_band", "fusion_loss", "fusion_pr", "fusion_position_std", "fusion_heading_std",
+    for plot in ("iou_by_band", "row_profile", "fusion_loss", "fusion_pr", "fusion_position_std", "fusion_heading_std",
                  "fusion_delay", "fusion_bits"):     # every declared plot has its data
         assert plot in shown.stdout and not rendered.get("errors", {}).get(plot), plot
     # every trained network's loss curve (a folder per stage in dvc.yaml: one plot per file)
