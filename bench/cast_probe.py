@@ -112,12 +112,14 @@ COMPOSES = ("generated", "hybrid", "cast")
 def real_frames(root: Path) -> None:
     """``typ generate`` on each real frame of shared/data with each compose: of every generated
     reference view, the fraction of points on the dataset LiDAR's beams (±0.05°) and, in the BEV
-    cells the ego's cloud covers, the fraction within 0.5 m of an ego return."""
+    cells the ego's cloud covers, the fraction within 0.5 m of an ego return; the L1 distance of its
+    range-image row-occupancy profile from the real scan's own (:mod:`tasks.realism`)."""
     import tempfile
 
     from scipy.spatial import cKDTree
 
     from flows.generate import generate_external
+    from tasks.realism import layout_of, view_pattern
     from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene
     from typ.resim import coverage_mask, in_mask
     from typ.sensors import SENSORS
@@ -125,8 +127,8 @@ def real_frames(root: Path) -> None:
 
     cfg = load_config(root / "params.yaml")
     print(f"\n| frame set | compose | views | points per view | on beam ±0.05° | within {NEAR_M} m of the ego's "
-          f"surface (seen cells) | ... of an ego return |")
-    print("|---|---|---|---|---|---|---|")
+          f"surface (seen cells) | ... of an ego return | row profile L1 to the real scan's |")
+    print("|---|---|---|---|---|---|---|---|")
     for fmt, rel in REAL.items():
         if not (DATA / rel).exists():
             print(f"| {fmt} | (not in shared/data) | | | | |")
@@ -136,7 +138,8 @@ def real_frames(root: Path) -> None:
                 # two roadside units a frame: a frame without a vehicle in the band still gets views
                 generate_external(fmt, DATA / rel, Path(tmp), root=root, params=PARAMS, compose=compose,
                                   roadside_units=ROADSIDE_UNITS)
-                beams, near, near_points, sizes = [], [], [], []
+                beams, near, near_points, sizes, rows = [], [], [], [], []
+                layout = layout_of(SENSORS[fmt])
                 g = Grid(*(getattr(cfg.voxelize.grid, k) for k in ("x_range", "y_range", "z_range", "shape"))
                          ).for_sensor(SENSORS[fmt].mount_height)
                 for folder in list_scenarios(Path(tmp) / fmt / "frames"):
@@ -144,6 +147,7 @@ def real_frames(root: Path) -> None:
                     for ts in list_timestamps(folder):
                         scene = read_scene(folder, ts, agents=agents)
                         ego = scene.agents[agents[0]]
+                        real_rows = view_pattern(ego.points, SENSORS[fmt], layout).rows / layout.width
                         for a in agents[1:]:
                             ref = scene.agents[a]
                             moved = points_to_reference(ego.points, ego.pose, ref.pose)
@@ -152,12 +156,13 @@ def real_frames(root: Path) -> None:
                             inside = in_mask(pts, seen, g)
                             sizes.append(len(pts))
                             beams.append(on_beam_fractions(pts, SENSORS[fmt], (0.05,), min_range=1.0)[0.05])
+                            rows.append(np.abs(view_pattern(pts, SENSORS[fmt], layout).rows / layout.width - real_rows).mean())
                             if inside.any():
                                 d, _ = cKDTree(moved[:, :3]).query(pts[inside], k=1)
                                 near_points.append(float(np.mean(d <= NEAR_M)))
                                 near.append(float(np.mean(surface_distance(moved, pts[inside]) <= NEAR_M)))
                 print(f"| {fmt} | {compose} | {len(sizes)} | {np.mean(sizes):.0f} | {np.mean(beams):.3f} | "
-                      f"{np.mean(near):.3f} | {np.mean(near_points):.3f} |", flush=True)
+                      f"{np.mean(near):.3f} | {np.mean(near_points):.3f} | {np.mean(rows):.3f} |", flush=True)
 
 
 def surface_distance(ego_points: np.ndarray, points: np.ndarray) -> np.ndarray:
