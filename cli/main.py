@@ -286,10 +286,10 @@ def _cmd_edit(args) -> int:
     check_folder(args.out, where="typ edit", field="--out")
     root = Path(args.root)
     _setup_env(root)
-    from flows.generate import edit_scenario
+    from flows.edit import edit_scenario
 
     path, render = edit_scenario(Path(args.scenario), args.timestamp, edit, Path(args.out), root=root,
-                                 params=args.params, agent=args.agent, seed=args.seed)
+                                 params=args.params, agent=args.agent, seed=args.seed, compose=args.compose)
     print(f"wrote {path}")
     print(f"wrote {render}")
     return 0
@@ -377,6 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "OUT/<scenario>: not the folder holding the scenario (the copy "
                                                 "would replace it); an earlier edit's copy there is replaced")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--compose", choices=("generated", "cast"), default=None,
+                   help="what the edited footprint is made of: points in the generated voxels, or a scan of "
+                        "the view's own LiDAR cast through the edited scene, which also hides the real points "
+                        "behind an added or moved vehicle (default: cast when params' generate.compose is cast)")
     p.set_defaults(fn=_cmd_edit)
     return parser
 

@@ -8,15 +8,12 @@ from prefect import flow
 
 from flows.common import per_scene_stage
 from tasks import generate as stage
-from tasks.edit import STAGE as EDIT, copy_scenario, edit_figure, edit_target, edit_view
 from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
 from tasks.pipeline import TYPPipeline
 from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
-from typ.formats.opv2v import list_agents, list_scenarios, read_scene, write_scene
-from typ.io import atomic_path, fit_name, hash_files, output_lock, write_manifest, written_by
-from typ.viz import save_png
+from typ.io import hash_files, output_lock, written_by
 
 STAGE = "generate"
 
@@ -78,39 +75,3 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
         folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
         results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
     return stage.summarize(results)
-
-
-def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path, params: str,
-                  agent: str | None = None, seed: int = 0, dataset: str | None = None) -> tuple[Path, Path]:
-    """``typ edit``: a copy of ``scenario`` under ``out`` with one view regenerated after ``edit``,
-    and beside it ``<scenario>_<timestamp>_<agent>_edit.png``, the view before and after.
-    Returns (the copy, the PNG).
-
-    dataset: whose LiDAR took the scenario (its ``voxelize.mount_height``); by default the name
-    of the folder two levels up (``<dataset>/<split>/<scenario>``), else the target domain.
-
-    The copy replaces only an earlier ``typ edit`` copy (its manifest says so); an ``out`` where
-    the copy would be, hold or lie inside ``scenario`` is refused (:func:`tasks.edit.edit_target`)."""
-    scenario = scenario.resolve()
-    target = edit_target(scenario, out)
-    cfg = load_config(root / params)
-    if dataset is None:
-        guess = scenario.parent.parent.name
-        dataset = guess if guess in cfg.voxelize.mount_height else cfg.stage1.dataset
-    generator = load_generator(root, cfg)
-    grid = generator.grid(dataset)
-    agents = list_agents(scenario)
-    agent = agent or agents[0]
-    if agent not in agents:
-        raise TypError(scenario, "--agent", f"one of {agents}", agent)
-    scene = read_scene(scenario, timestamp, agents=[agent])
-    result = edit_view(scene.agents[agent], edit, generator, grid, seed)
-    with atomic_path(target, stage=EDIT) as tmp:
-        copy_scenario(scenario, tmp)
-        write_scene(dataclasses.replace(scene, scenario=tmp.name, agents={agent: result.view}), tmp)
-        write_manifest(tmp, EDIT, {"source": str(scenario), "timestamp": timestamp, "agent": agent, "seed": seed,
-                                   "edit": dataclasses.asdict(edit)})
-    render = save_png(edit_figure(scene.agents[agent], result, grid,
-                                  title=f"typ edit: {scenario.name} {timestamp} agent {agent}"),
-                      target.parent / fit_name(f"{scenario.name}_{timestamp}_{agent}_edit.png"))
-    return target, render

@@ -5,6 +5,16 @@ boxes that were removed or moved taken out, conditions the adapter (x_e' = the e
 itself). Only the BEV cells under an edited box — its old and its new footprint, with a
 margin — take the generated occupancy; everywhere else the real points are kept as they
 are, so an edit changes what it names and nothing else.
+
+What the footprint cells get (``compose``, as ``generate.compose``):
+
+- ``generated``: points drawn in the generated voxels (:func:`tasks.pipeline.occupancy_to_points`);
+- ``cast``: a scan of the view's own LiDAR (:mod:`typ.castview`): one scene of the view's
+  surfels, the generated cells of the footprints standing on the road, and the added or moved
+  vehicles as boxes, cast once from the view's sensor; the returns in the footprint cells are
+  kept, on the sensor's beams. Real points behind an added or moved vehicle are dropped: the
+  sensor cannot see through it. (The area a removed vehicle shadowed beyond its footprint stays
+  as the sensor saw it, empty.) Carving is off: an edit puts vehicles where the view saw free road.
 """
 from __future__ import annotations
 
@@ -17,8 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from tasks.generate import EGO_CAR_LWH, Generator
+from typ.config import CastConfig
 from typ.errors import TypError
 from typ.geometry import points_in_boxes
+from typ.resim import in_mask
 from typ.scene import AgentView
 from typ.voxel import Grid, box_map, voxelize
 
@@ -26,6 +38,10 @@ from typ.voxel import Grid, box_map, voxelize
 FOOTPRINT_MARGIN = 1.0
 #: what the manifest of an edited copy names as its writer (typ.io.write_manifest)
 STAGE = "edit"
+#: what an edited footprint is made of (module doc)
+COMPOSE = ("generated", "cast")
+#: a real point counts as hidden behind an edited vehicle when its ray meets the box this far before it
+OCCLUSION_SLACK_M = 0.1
 
 
 @dataclass(frozen=True)
@@ -90,10 +106,17 @@ def footprint_mask(boxes: np.ndarray, grid: Grid, margin: float = FOOTPRINT_MARG
     return box_map(grown, grid)[:, :, 0]
 
 
-def edit_view(view: AgentView, edit: BoxEdit, generator: Generator, grid: Grid, seed: int) -> EditedView:
-    """Regenerate ``view`` with ``edit`` applied (see the module docstring)."""
+def edit_view(view: AgentView, edit: BoxEdit, generator: Generator, grid: Grid, seed: int, *,
+              compose: str = "generated", sensor=None, cast: CastConfig = CastConfig()) -> EditedView:
+    """Regenerate ``view`` with ``edit`` applied (see the module docstring). ``sensor``: the
+    view's LiDAR (a SensorSpec, :meth:`tasks.generate.Generator.sensor`), which ``compose: cast``
+    casts; ``cast``: the cast view's scene (:class:`typ.config.CastConfig`)."""
     if edit.is_empty():
         raise TypError("typ edit", "edits", "at least one of --remove, --move, --add", "none")
+    if compose not in COMPOSE:
+        raise TypError("typ edit", "--compose", f"one of {COMPOSE}", compose)
+    if compose == "cast" and sensor is None:
+        raise TypError("typ edit", "sensor", "the view's LiDAR (a SensorSpec), which a cast edit casts with", None)
     edited, old, new = edit_boxes(view, edit)
     touched = np.concatenate([old, new])
     footprint = footprint_mask(touched, grid)
@@ -106,11 +129,53 @@ def edit_view(view: AgentView, edit: BoxEdit, generator: Generator, grid: Grid, 
     # a re-simulation-conditioned generator: the view re-simulated from its own pose is the view
     resim = x_e[None].astype(np.float32) if generator.pipe.conditions == 2 else None
     occupancy = generator.pipe.occupancy(x_e[None], y_r[None], seed=seed, resim=resim)[0]
-    generated = generator.pipe.points(occupancy & footprint[None], grid, seed)
-    kept = view.points[~_in_cells(view.points, footprint, grid)]
+    kept = view.points[~in_mask(view.points, footprint, grid)]
+    if compose == "cast":
+        generated = cast_footprint(view.points[~inside_old], occupancy, footprint, new, grid, sensor, seed,
+                                   generator.pipe.point_stats, cast)
+        kept = kept[~behind_boxes(kept, new * np.r_[1, 1, 1, [cast.label_boxes] * 3, 1])]
+    else:
+        generated = generator.pipe.points(occupancy & footprint[None], grid, seed)
     points = np.concatenate([kept[:, :4].astype(np.float32), generated]).astype(np.float32)
     out = dataclasses.replace(edited, points=points, semantics=None)
     return EditedView(out, footprint, x_e, y_r)
+
+
+def cast_footprint(points: np.ndarray, occupancy: np.ndarray, footprint: np.ndarray, boxes: np.ndarray, grid: Grid,
+                   sensor, seed: int, stats, cast: CastConfig) -> np.ndarray:
+    """(M, 4) float32: the sensor's returns in the ``footprint`` cells of one scene made of the
+    view's ``points`` as surfels, the generated ``occupancy`` of the footprint, and ``boxes``
+    (the added and moved vehicles), with intensities drawn as the generated points'."""
+    from tasks.pipeline import draw_intensities
+    from tasks.stage2 import own_car_box
+    from typ.castview import cast as cast_rays, scene_model
+
+    params = dataclasses.replace(cast, carve=False)
+    verts, tris = scene_model(points, occupancy & footprint[None], grid, sensor, params=params, label_boxes=boxes,
+                              exclude_boxes=own_car_box(sensor, EGO_CAR_LWH), mask=~footprint)
+    xyz = cast_rays(verts, tris, sensor, np.random.default_rng([seed, 2]))
+    xyz = xyz[in_mask(xyz, footprint, grid)]
+    return draw_intensities(xyz, grid, stats, np.random.default_rng([seed, 1]))
+
+
+def behind_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(N,) bool: the ray from the sensor origin to the point meets one of ``boxes`` (K, 7) more
+    than :data:`OCCLUSION_SLACK_M` before it."""
+    if len(boxes) == 0 or len(points) == 0:
+        return np.zeros(len(points), dtype=bool)
+    import open3d as o3d
+
+    from typ.castview import oriented_boxes_mesh
+
+    verts, tris = oriented_boxes_mesh(boxes)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    dist = np.linalg.norm(xyz, axis=1)
+    rays = np.zeros((len(xyz), 6), dtype=np.float32)
+    rays[:, 3:] = xyz / np.maximum(dist, 1e-9)[:, None]
+    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return np.isfinite(hit) & (hit < dist - OCCLUSION_SLACK_M)
 
 
 def edit_figure(before: AgentView, result: EditedView, grid: Grid, *, title: str = ""):
@@ -132,15 +197,6 @@ def edit_figure(before: AgentView, result: EditedView, grid: Grid, *, title: str
                               note=f"{len(result.view.points)} points, {int(result.footprint.sum())} cells regenerated"),
               change]
     return viz.panels_figure(panels, title=title, colorbar_z=grid.z_range)
-
-
-def _in_cells(points: np.ndarray, cells: np.ndarray, grid: Grid) -> np.ndarray:
-    """(N,) bool: the point's BEV cell is in ``cells`` (points outside the grid: False)."""
-    ij = np.floor((points[:, :2] - grid.lower[:2]) / grid.voxel_size[:2]).astype(np.int64)
-    ok = (ij >= 0).all(axis=1) & (ij[:, 0] < grid.shape[0]) & (ij[:, 1] < grid.shape[1])
-    out = np.zeros(len(points), dtype=bool)
-    out[ok] = cells[ij[ok, 0], ij[ok, 1]]
-    return out
 
 
 def edit_target(scenario: Path, out: Path) -> Path:

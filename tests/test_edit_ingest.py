@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tasks.edit import BoxEdit, _in_cells, edit_boxes, footprint_mask
+from tasks.edit import BoxEdit, edit_boxes, footprint_mask
 from tasks.generate import candidate_ids, new_skip_counts
 from typ.scene import VEHICLE_LABELS
 from tasks.ingest import read_frames, to_sensor_frame, write_single_agent
@@ -15,6 +15,7 @@ from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, scenario_sensor
 from typ.geometry import pose_to_matrix
 from typ.scene import AgentView, Scene
+from typ.resim import in_mask
 from typ.voxel import Grid
 
 GRID = Grid((-51.2, 51.2), (-51.2, 51.2), (-3.0, 1.0), (128, 128, 8))
@@ -49,7 +50,7 @@ def test_footprint_cells_cover_the_box_and_only_its_neighbourhood():
     box = np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0]])
     mask = footprint_mask(box, GRID, margin=1.0)
     pts = np.array([[10.0, 0.0, 0.0], [12.5, 1.5, 0.0], [14.0, 0.0, 0.0], [10.0, 3.0, 0.0], [-40, -40, 0], [90, 0, 0]])
-    assert list(_in_cells(pts, mask, GRID)) == [True, True, False, False, False, False]
+    assert list(in_mask(pts, mask, GRID)) == [True, True, False, False, False, False]
     # 6 x 4 m with the margin at 0.8 m cells: about 7.5 x 5 cells (box_map's edge slack aside)
     assert 30 <= mask.sum() <= 60
 
@@ -101,6 +102,12 @@ class _BoxFollowingPipe:
 
     conditions = 0
 
+    @property
+    def point_stats(self):
+        from tasks.pipeline import PointStats
+
+        return PointStats.single()
+
     def occupancy(self, x_e, y_r, *, seed, resim=None):
         occ = np.zeros((len(y_r), GRID.shape[2], *GRID.shape[:2]), dtype=bool)
         occ[:, 0] = True
@@ -144,11 +151,71 @@ def test_edit_view_makes_occupancy_appear_and_disappear_in_the_edited_footprints
     # the removed car's points are not in the conditioning cloud either
     assert not result.x_e[1:][:, footprint_mask(np.array([removed_box]), GRID, 0.0)].any()
     # outside the edited footprints every real point is kept as it was
-    outside = ~_in_cells(view.points, result.footprint, GRID)
-    kept = result.view.points[~_in_cells(result.view.points, result.footprint, GRID)]
+    outside = ~in_mask(view.points, result.footprint, GRID)
+    kept = result.view.points[~in_mask(result.view.points, result.footprint, GRID)]
     assert np.array_equal(np.sort(kept, axis=0), np.sort(view.points[outside], axis=0))
     with pytest.raises(TypError, match="at least one"):
         edit_module.edit_view(view, BoxEdit(), generator=_generator(), grid=GRID, seed=0)
+
+
+def _scan_of(boxes: np.ndarray, sensor) -> np.ndarray:
+    """(N, 4) what ``sensor`` sees of flat ground at its mount height and ``boxes``, cast by typ."""
+    from typ.castview import cast, oriented_boxes_mesh
+
+    ground = np.array([[0.0, 0.0, -sensor.mount_height - 0.05, 200.0, 200.0, 0.1, 0.0]])
+    verts, tris = oriented_boxes_mesh(np.concatenate([ground, boxes]))
+    xyz = cast(verts, tris, sensor, np.random.default_rng(0))
+    return np.c_[xyz, np.zeros(len(xyz))].astype(np.float32)
+
+
+def test_a_cast_edit_is_a_scan_of_the_views_lidar_and_hides_what_an_added_car_covers():
+    import dataclasses
+
+    import tasks.edit as edit_module
+    from typ.config import CastConfig
+    from typ.geometry import points_in_boxes
+    from typ.sensors import on_beam_fractions
+    from typ.sim.sensor import SensorSpec
+
+    sensor = SensorSpec(name="edit", elevations_deg=tuple(np.linspace(-24.0, 2.0, 32)), max_range=80.0, min_range=1.0,
+                        mount_height=2.7, range_noise_std=0.0, dropout=0.0, detection_energy=0.0,
+                        intensity_model="attenuation", azimuth_step_deg=0.5)
+    car = np.array([[10.0, 0.0, -1.95, 4.0, 2.0, 1.5, 0.0]])
+    view = AgentView("1", _scan_of(car, sensor), np.eye(4), car, ("car",), np.array([5]))
+    edit = BoxEdit(remove=(5,), add=((-20.0, 15.0, 0.0),))
+    result = edit_module.edit_view(view, edit, generator=_generator(), grid=GRID, seed=0, compose="cast", sensor=sensor)
+    added = result.view.boxes[-1]
+    inside = in_mask(result.view.points, result.footprint, GRID)
+    regenerated = result.view.points[inside]
+    # the footprints are a scan of the view's LiDAR: every point on one of its beams
+    assert len(regenerated) > 500 and on_beam_fractions(regenerated, sensor, (0.05,), min_range=1.0)[0.05] > 0.99
+    # the added car is there (its returns on the box the edit placed), the removed one is gone
+    grown = added.copy()
+    grown[3:6] += 0.3
+    assert points_in_boxes(regenerated, grown[None]).sum() > 50
+    assert points_in_boxes(result.view.points, car + [0, 0, 0.2, 0, 0, 0, 0]).sum() == 0
+    # outside the footprints: the real points, less those the added car hides from the sensor
+    outside = view.points[~in_mask(view.points, result.footprint, GRID)]
+    kept = result.view.points[~inside]
+    scaled = added * np.r_[1, 1, 1, [CastConfig().label_boxes] * 3, 1]
+    behind = edit_module.behind_boxes(outside, scaled[None])
+    assert np.array_equal(kept, outside[~behind])
+
+    def sight_lines_meet(grow: float) -> np.ndarray:   # samples every <= 0.18 m of each sight line
+        box = scaled + np.r_[0, 0, 0, [grow] * 3, 0]
+        along = np.linspace(0.0, 1.0, 400)[:, None, None] * outside[None, :, :3]
+        return points_in_boxes(along.reshape(-1, 3), box[None]).reshape(400, -1).any(axis=0)
+
+    surely, maybe = sight_lines_meet(-0.1), sight_lines_meet(0.4)
+    assert surely.sum() > 20 and not (surely & ~behind).any() and not (behind & ~maybe).any()
+    # points in the generated voxels instead: nothing outside the footprints changes
+    plain = edit_module.edit_view(view, edit, generator=_generator(), grid=GRID, seed=0)
+    assert len(plain.view.points[~in_mask(plain.view.points, plain.footprint, GRID)]) == len(outside)
+    with pytest.raises(TypError, match="sensor"):
+        edit_module.edit_view(view, edit, generator=_generator(), grid=GRID, seed=0, compose="cast")
+    with pytest.raises(TypError, match="--compose"):
+        edit_module.edit_view(view, edit, generator=_generator(), grid=GRID, seed=0, compose="hybrid")
+    assert dataclasses.replace(CastConfig(), carve=True).carve   # the default casts with carving; an edit does not
 
 
 def test_edit_figure_shows_before_after_and_the_changed_cells(monkeypatch):

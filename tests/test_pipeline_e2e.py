@@ -397,8 +397,12 @@ def test_generate_from_real_kitti_frames_through_the_cli(project, tmp_path):
 
 
 def test_edit_regenerates_only_the_edited_footprint(project, tmp_path):
-    from tasks.edit import FOOTPRINT_MARGIN, _in_cells, footprint_mask
+    from tasks.edit import FOOTPRINT_MARGIN, behind_boxes, footprint_mask
+    from typ.config import load_config
     from typ.formats.opv2v import list_agents, read_scene
+    from typ.resim import in_mask
+    from typ.sensors import on_beam_fractions
+    from typ.sim.sensor import domain_spec
     from typ.store import list_scenes, stored_grid
 
     proj, env, _ = project
@@ -413,9 +417,17 @@ def test_edit_regenerates_only_the_edited_footprint(project, tmp_path):
     grid = stored_grid(list_scenes(proj / "data" / "voxels", dataset="target")[0].path)
     touched = np.concatenate([view.boxes[view.box_ids == vid], edited.boxes[-1:]])
     cells = footprint_mask(touched, grid, FOOTPRINT_MARGIN)
-    outside = view.points[~_in_cells(view.points, cells, grid)]
-    kept = edited.points[~_in_cells(edited.points, cells, grid)]
-    assert np.array_equal(np.sort(kept, axis=0), np.sort(outside, axis=0))
+    outside = view.points[~in_mask(view.points, cells, grid)]
+    kept = edited.points[~in_mask(edited.points, cells, grid)]
+    # tiny's generate.compose is cast, so the edit is too: the footprints are a scan of the view's
+    # LiDAR, and the real points the added car hides are gone; every other real point is kept as it was
+    manifest = json.loads((tmp_path / source.name / "_typ.json").read_text())
+    assert manifest["compose"] == "cast"
+    scaled = edited.boxes[-1] * np.r_[1, 1, 1, [load_config(proj / "params.yaml").generate.cast.label_boxes] * 3, 1]
+    hidden = behind_boxes(outside, scaled[None])
+    assert np.array_equal(np.sort(kept, axis=0), np.sort(outside[~hidden], axis=0))
+    regenerated = edited.points[in_mask(edited.points, cells, grid)]
+    assert on_beam_fractions(regenerated, domain_spec("target").sensor, (0.05,), min_range=1.0)[0.05] > 0.99
     for other in list_agents(source)[1:]:  # other agents' files are copied unchanged
         assert (tmp_path / source.name / other / "000000.pcd").read_bytes() == \
             (source / other / "000000.pcd").read_bytes()

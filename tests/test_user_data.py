@@ -45,6 +45,12 @@ class _GroundPipe:
     conditions = 0
     grid = GRID
 
+    @property
+    def point_stats(self):
+        from tasks.pipeline import PointStats
+
+        return PointStats.single()
+
     def occupancy(self, x_e, y_r, *, seed, resim=None):
         occ = np.zeros((len(y_r), GRID.shape[2], *GRID.shape[:2]), dtype=bool)
         occ[:, 0] = True
