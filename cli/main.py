@@ -194,6 +194,26 @@ def _cmd_check(args) -> int:
     return 0
 
 
+def _cmd_dvc_yaml(args) -> int:
+    import difflib
+
+    from typ import dvcyaml
+
+    root = Path(args.root)
+    text, path = dvcyaml.render(root), root / "dvc.yaml"
+    if not args.check:
+        dvcyaml.write(root)
+        print(f"wrote {path}")
+        return 0
+    old = path.read_text() if path.is_file() else ""
+    if old == text:
+        print(f"{path} is what typ/stages.py gives")
+        return 0
+    sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), text.splitlines(True), str(path), "typ dvc-yaml"))
+    print(f"{path} differs from what typ/stages.py gives: run `typ dvc-yaml`", file=sys.stderr)
+    return 1
+
+
 def _cmd_schema(args) -> int:
     from typ.config_schema import config_schema
     from typ.io import write_json
@@ -334,6 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
                                       "points a YAML language server at it)")
     p.add_argument("--out", default="params.schema.json", help="path relative to the root (default: params.schema.json)")
     p.set_defaults(fn=_cmd_schema)
+    p = sub.add_parser("dvc-yaml", help="write dvc.yaml from the stage registry (typ/stages.py), code deps from "
+                                        "each flow's imports")
+    p.add_argument("--check", action="store_true", help="write nothing; exit 1 with a diff when dvc.yaml differs")
+    p.set_defaults(fn=_cmd_dvc_yaml)
     p = sub.add_parser("report", help="write reports/summary.md from the stage metrics and benches")
     p.set_defaults(fn=_cmd_report)
     p = sub.add_parser("generate", help="turn KITTI / nuScenes / Waymo frames into collaborative OPV2V scenarios "

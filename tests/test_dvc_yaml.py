@@ -1,0 +1,78 @@
+"""dvc.yaml is generated from the stage registry (typ/stages.py): it cannot drift from it."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import yaml
+
+from typ import dvcyaml, stages
+from typ.config import Config
+
+ROOT = dvcyaml.ROOT
+
+
+def test_the_committed_dvc_yaml_is_what_the_registry_gives():
+    assert (ROOT / "dvc.yaml").read_text() == dvcyaml.render(), "dvc.yaml drifted from typ/stages.py: run `typ dvc-yaml`"
+
+
+def test_every_config_stage_is_registered_in_order_with_its_flow_and_block():
+    registered = stages.stages()
+    assert tuple(s.name for s in registered) == Config.STAGES
+    for s in registered:
+        assert (ROOT / "flows" / f"{s.name}.py").is_file(), s.name
+        assert s.kind in ("per-scene", "training", "scoring") and set(s.params) <= set(Config.STAGES), s.name
+        assert s.metrics == f"metrics/{s.name}.json"
+
+
+def test_a_stage_added_to_the_registry_gets_its_code_params_and_outputs(monkeypatch, tmp_path):
+    """One registry entry makes a whole dvc.yaml stage: the deps of its flow's imports, the profile
+    keys of its blocks, its outputs; an edit to the registry shows as drift."""
+    (tmp_path / "flows").mkdir()
+    (tmp_path / "tasks").mkdir()
+    (tmp_path / "typ").mkdir()
+    (tmp_path / "flows" / "__init__.py").write_text("")
+    (tmp_path / "flows" / "probe.py").write_text("from tasks import probe\n")
+    (tmp_path / "tasks" / "__init__.py").write_text("")
+    (tmp_path / "tasks" / "probe.py").write_text("def run():\n    from typ import io\n")
+    (tmp_path / "typ" / "__init__.py").write_text("")
+    (tmp_path / "typ" / "io.py").write_text("")
+    (tmp_path / "typ" / "profiles.yaml").write_text("tiny:\n  probe: {}\n  fusion: {}\npaper:\n  probe: {}\n")
+    probe = stages.Stage("probe", "training", True, "a probe", data=("data/x",), params=("fusion",),
+                         outs=("artifacts/probe",), reports=("reports/probe.md",), loss_curves=True)
+    monkeypatch.setattr(stages, "stages", lambda: (probe,))
+    built = dvcyaml.build(tmp_path)
+    entry = built["stages"]["probe"]
+    assert entry["cmd"] == ".venv/bin/typ run probe"
+    assert entry["deps"] == ["data/x", "flows/__init__.py", "flows/probe.py", "tasks/__init__.py", "tasks/probe.py",
+                             "typ/__init__.py", "typ/io.py"]
+    assert entry["params"] == ["profile", "probe", "fusion", {"typ/profiles.yaml": ["tiny.probe", "paper.probe",
+                                                                                   "tiny.fusion"]}]
+    assert entry["outs"] == [{"artifacts/probe": {"persist": True}}, {"reports/probe.md": {"cache": False}}]
+    assert entry["metrics"] == [{"metrics/probe.json": {"cache": False}}]
+    assert list(built["plots"][0]) == ["artifacts/probe/loss"]
+    assert yaml.safe_load(dvcyaml.render(tmp_path)) == built
+
+
+def test_typ_dvc_yaml_check_fails_on_drift_and_writes_the_file(tmp_path):
+    import shutil
+
+    project = tmp_path / "p"
+    for package in dvcyaml.PACKAGES:   # what code deps are computed from
+        shutil.copytree(ROOT / package, project / package, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "dvc.yaml", project / "dvc.yaml")
+    typ = [sys.executable, "-m", "cli.main", "--root", str(project), "dvc-yaml"]
+    ok = subprocess.run([*typ, "--check"], cwd=ROOT, capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    (project / "dvc.yaml").write_text((project / "dvc.yaml").read_text().replace("    - tasks/realism.py\n", ""))
+    drift = subprocess.run([*typ, "--check"], cwd=ROOT, capture_output=True, text=True)
+    assert drift.returncode == 1 and "-    - tasks/realism.py" not in drift.stdout and "+    - tasks/realism.py" in drift.stdout
+    assert "typ dvc-yaml" in drift.stderr
+    assert subprocess.run(typ, cwd=ROOT, capture_output=True).returncode == 0
+    assert (project / "dvc.yaml").read_text() == (ROOT / "dvc.yaml").read_text()
+
+
+def test_the_stage_table_of_the_docs_lists_the_registry_in_order():
+    rows = [line.split("|")[1].strip() for line in (ROOT / "docs" / "stages.md").read_text().splitlines()
+            if line.startswith("| ") and not line.startswith(("| stage ", "|---"))]
+    assert rows == [s.name for s in stages.stages()]
