@@ -96,10 +96,7 @@ def compare(rows: list[dict]) -> list[dict]:
 
 
 def write(rows: list[dict], out: Path, steps: int, batch: int) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import subplots
 
     lines = ["# Data-parallel training on the CPU (stage 1)", "",
              f"Stage-1 steps of the tiny UNet (block_out_channels {rows[0]['unet']}), global batch {batch}, "
@@ -114,14 +111,13 @@ def write(rows: list[dict], out: Path, steps: int, batch: int) -> Path:
                   f"{threads['s_per_step'] / sharded['s_per_step']:.2f}x.**", ""]
     path = out / "bench_ddp.md"
     write_text(path, "\n".join(lines))
-    fig, ax = plt.subplots(figsize=(7, 3))
+    fig, ax = subplots(figsize=(7, 3))
     ax.barh([r["setup"] for r in rows][::-1], [r["s_per_step"] for r in rows][::-1], color="tab:blue")
     ax.set_xlabel("seconds per training step (lower is better)")
     ax.set_title(f"stage-1 steps, global batch {batch}, {os.cpu_count()} cores")
     fig.tight_layout()
     with atomic_path(out / "bench_ddp.png") as tmp:
         fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
     return path
 
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from tasks.evaluate import table
 from typ.io import write_text
+from typ.reporting import subplots
 from typ.viz import save_png
 
 #: (key, label) of the generation figures shown, as reports/generation_accuracy.md names them
@@ -289,9 +289,7 @@ def curves_figure(results: dict) -> Figure | None:
     curve = (results["phases"].get("train") or {}).get("curve") or []
     if not curve:
         return None
-    fig = Figure(figsize=(3.2 * len(CURVES), 3.0), dpi=100, layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(1, len(CURVES))
+    fig, axes = subplots(1, len(CURVES), figsize=(3.2 * len(CURVES), 3.0), dpi=100, layout="constrained")
     networks = list(dict.fromkeys(p["network"] for p in curve))
     for ax, (key, label) in zip(axes, CURVES):
         for net in networks:

@@ -472,16 +472,13 @@ def render(store: dict) -> str:
 
 
 def plot(store: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import subplots
     import numpy as np
 
     panels = [k for k in ("pipeline", "paper", "fusion") if store.get(k)]
     if not panels:
         return
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.8), squeeze=False)
+    fig, axes = subplots(1, len(panels), figsize=(6.2 * len(panels), 4.8), squeeze=False)
     for ax, key in zip(axes[0], panels):
         res = store[key]
         if key == "pipeline":
@@ -528,7 +525,6 @@ def plot(store: dict, path: Path) -> None:
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
 
 
 def write_report(store: dict, out: Path) -> None:

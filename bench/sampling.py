@@ -264,14 +264,11 @@ def plot_data(results: dict, path: Path) -> Path:
 
 
 def plot(results: dict, path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import subplots
 
     panels = (("jsd", "JSD to truth (r2dm, ↓)", False), ("iou", "voxel IoU to truth (↑)", False),
               ("dp", "mean |Δp| to DDIM-200, same noise (↓, log)", True))
-    fig, axes = plt.subplots(len(panels), len(results), figsize=(5.2 * len(results), 11), squeeze=False,
+    fig, axes = subplots(len(panels), len(results), figsize=(5.2 * len(results), 11), squeeze=False,
                              sharex="col")
     for col, (name, res) in enumerate(results.items()):
         ref = res["ref"]
@@ -311,7 +308,6 @@ def plot(results: dict, path: Path, title: str) -> None:
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
 
 
 def parse_args(argv: list[str] | None):

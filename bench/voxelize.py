@@ -172,12 +172,9 @@ def table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    import matplotlib
+    from typ.reporting import subplots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(max(8.0, 1.1 * len(rows)), 4.8))
+    fig, ax = subplots(figsize=(max(8.0, 1.1 * len(rows)), 4.8))
     width = 0.8 / len(METHODS)
     x = np.arange(len(rows))
     for m, method in enumerate(METHODS):
@@ -191,7 +188,6 @@ def plot(rows: list[dict], path: Path) -> None:
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -15,6 +15,7 @@ from tasks.ddpm_metrics import METRICS, overlaps
 from typ.compare import pareto_front
 from typ.io import atomic_path, write_text
 from typ.metrics import PRESETS
+from typ.reporting import markdown_table
 
 FAST_MAX_STEPS = 50
 #: MMD values are printed x 10^5, as LiDAR DDPM Table II does
@@ -136,17 +137,18 @@ def metrics_of(rows: list[dict], round_trips: dict, feature_scores: dict, models
             "models": models, **context}
 
 
+TABLE_HEAD = ("row", "schedule", "embedding", "sampler", "s/sample", "JSD ↓", "MMD ×10⁵ ↓", "FRID† ↓", "FPVD† ↓",
+              "spread", "IoU")
+
+
 def _table(rows: list[dict], *, with_config: bool = True) -> list[str]:
-    head = "| row | schedule | embedding | sampler | s/sample | JSD ↓ | MMD ×10⁵ ↓ | FRID† ↓ | FPVD† ↓ | spread | IoU |"
-    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
-    for r in rows:
-        name = r["config"] if with_config else label(r)
-        iou = "–" if r["iou"] is None else f"{r['iou']:.3f}"
-        spread = "–" if r["spread"] is None else f"{r['spread']:.2f}"
+    def cells(r: dict) -> list[str]:
         sampler = f"{r['sampler']}-{r['steps']}" if r["sampler"] else "–"
-        lines.append(f"| {name} | {r['schedule'] or '–'} | {r['embedding'] or '–'} | {sampler} | {_seconds(r)} | "
-                     + " | ".join(_cells(r)) + f" | {spread} | {iou} |")
-    return lines
+        return [r["config"] if with_config else label(r), r["schedule"] or "–", r["embedding"] or "–", sampler,
+                _seconds(r), *_cells(r), "–" if r["spread"] is None else f"{r['spread']:.2f}",
+                "–" if r["iou"] is None else f"{r['iou']:.3f}"]
+
+    return markdown_table(TABLE_HEAD, (cells(r) for r in rows)).split("\n")
 
 
 def report(rows: list[dict], *, round_trips: dict, feature_scores: dict, context: dict, plot: str,
@@ -223,14 +225,12 @@ def _savefig(fig, path: Path) -> None:
 
 def pareto_plot(rows: list[dict], path: Path) -> None:
     """JSD and FRID against seconds per sample (log), every generating row, Pareto front drawn."""
-    import matplotlib
     import matplotlib.ticker
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import subplots
 
     colours = {"range": "tab:blue", "bev": "tab:orange", "voxel": "tab:green"}
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    fig, axes = subplots(1, 2, figsize=(13, 5))
     for ax, metric in zip(axes, ("jsd", "frid")):
         made = [r for r in rows if r["route"] != "reference" and r[metric] is not None]
         for r in made:
@@ -258,21 +258,17 @@ def pareto_plot(rows: list[dict], path: Path) -> None:
     axes[1].set_title("FRID: typ's own range-image features (comparable within typ only; blind on voxel rows)",
                       fontsize=9)
     _savefig(fig, path)
-    plt.close(fig)
 
 
 def gallery(examples: dict[str, np.ndarray], path: Path) -> None:
     """Real and generated images side by side: range images (depth) and BEV images (height where occupied)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import figure
 
     names = list(examples)
     range_names = [n for n in names if n.startswith("range")]
     bev_names = [n for n in names if n.startswith("bev")]
     rows = len(range_names) + (1 if bev_names else 0)
-    fig = plt.figure(figsize=(14, 1.3 * len(range_names) + (3.2 if bev_names else 0)))
+    fig = figure(figsize=(14, 1.3 * len(range_names) + (3.2 if bev_names else 0)))
     grid = fig.add_gridspec(rows, 1, height_ratios=[1] * len(range_names) + ([2.6] if bev_names else []))
     for i, name in enumerate(range_names):
         sub = grid[i].subgridspec(1, 2, wspace=0.02)
@@ -294,23 +290,19 @@ def gallery(examples: dict[str, np.ndarray], path: Path) -> None:
                 ax.set_axis_off()
                 ax.set_title(f"{name} #{j}", fontsize=6)
     _savefig(fig, path)
-    plt.close(fig)
 
 
 def write_skipped(folder: Path, reason: str) -> list[Path]:
     """``ddpm.md``, ``ddpm_pareto.png`` and ``ddpm_samples.png`` of a run that could not train: each says why."""
     import textwrap
 
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+    from typ.reporting import figure
     from typ.viz import save_png
 
     md = write_text(folder / "ddpm.md", f"# LiDAR DDPM\n\nNot run: {reason}.\n") or folder / "ddpm.md"
     paths = [md]
     for name in ("ddpm_pareto.png", "ddpm_samples.png"):
-        fig = Figure(figsize=(7, 1.6), dpi=100)
-        FigureCanvasAgg(fig)
+        fig = figure(figsize=(7, 1.6), dpi=100)
         fig.text(0.5, 0.5, "LiDAR DDPM not run:\n" + textwrap.fill(reason, 90), ha="center", va="center", fontsize=8)
         paths.append(save_png(fig, folder / name))
     return paths

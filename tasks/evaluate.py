@@ -28,6 +28,7 @@ from tasks import evaluate_generation as gen
 from tasks import genscore, realism, selftrain
 from typ.io import write_text
 from typ.metrics.intervals import Interval
+from typ.reporting import markdown_table
 
 LOG = logging.getLogger(__name__)
 
@@ -54,10 +55,8 @@ def cell(v) -> str:
 
 
 def table(rows: dict[str, dict], columns: list[tuple[str, str]], first: str = "method") -> str:
-    lines = [f"| {first} | " + " | ".join(h for _, h in columns) + " |", "|---|" + "---|" * len(columns)]
-    for name, values in rows.items():
-        lines.append(f"| {name} | " + " | ".join(cell(values.get(k)) for k, _ in columns) + " |")
-    return "\n".join(lines)
+    return markdown_table([first, *(h for _, h in columns)],
+                          ([name, *(cell(values.get(k)) for k, _ in columns)] for name, values in rows.items()))
 
 
 def comparisons(table_: dict[str, dict[str, Interval]], pairs: list[tuple[str, str, str]]) -> list[str]:

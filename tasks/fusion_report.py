@@ -247,16 +247,13 @@ def _savefig(fig, path: Path) -> None:
 
 def write_report(results: dict, cfg: FusionConfig, folder: Path) -> list[Path]:
     """``fusion.md``, ``fusion_pr.png`` and ``fusion_robustness.png`` under ``folder``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import subplots
 
     md, pr_png, rob_png = folder / "fusion.md", folder / "fusion_pr.png", folder / "fusion_robustness.png"
     write_text(md, report_markdown(results, cfg))
     colors = {m: f"C{i}" for i, m in enumerate(METHODS)}
 
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+    fig, ax = subplots(figsize=(6, 4.5))
     for method, row in results["tables"].get("table1", {}).items():
         for data, cell in row.items():
             if cell and "pr" in cell:
@@ -268,10 +265,9 @@ def write_report(results: dict, cfg: FusionConfig, folder: Path) -> list[Path]:
            title="PR curves on real_cav/test, AP@0.5, all ranges (first seed)")
     ax.legend(fontsize=6, loc="upper right")
     _savefig(fig, pr_png)
-    plt.close(fig)
 
     rob = results["robustness"]
-    fig, axes = plt.subplots(1, 4, figsize=(17, 4))
+    fig, axes = subplots(1, 4, figsize=(17, 4))
     labels = {"position_std": "position noise σ (m)", "heading_std_deg": "heading noise σ (°)",
               "delay_ms": "time delay applied (ms)"}
 
@@ -307,7 +303,6 @@ def write_report(results: dict, cfg: FusionConfig, folder: Path) -> list[Path]:
     ax.legend(fontsize=7)
     fig.tight_layout()
     _savefig(fig, rob_png)
-    plt.close(fig)
     return [md, pr_png, rob_png]
 
 

@@ -11,6 +11,7 @@ from tasks.ssc import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
 from typ.config import SscConfig
 from typ.io import atomic_path, write_text
 from typ.metrics.ssc import SSC_CLASSES
+from typ.reporting import markdown_table
 
 #: Table I's columns: (figure, header)
 COLUMNS = (("iou", "IoU"), ("miou", "mIoU"), ("ciou", "cIoU"),
@@ -45,10 +46,9 @@ def _pct(cell: dict) -> str:
 
 
 def _table(rows: dict) -> list[str]:
-    out = ["| method | " + " | ".join(h for _, h in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
-    for method, row in rows.items():
-        out.append(f"| {DISPLAY[method]} | " + " | ".join(_pct(row["figures"][f]) for f, _ in COLUMNS) + " |")
-    return out
+    return markdown_table(["method", *(h for _, h in COLUMNS)],
+                          ([DISPLAY[m], *(_pct(row["figures"][f]) for f, _ in COLUMNS)] for m, row in rows.items())
+                          ).split("\n")
 
 
 def _beats(rows: dict) -> list[str]:
@@ -178,37 +178,32 @@ def _savefig(fig, path: Path) -> None:
 
 def render_maps(truth: np.ndarray, predictions: dict[str, np.ndarray], path: Path, title: str) -> Path:
     """Top-class images of the true map and each method's prediction side by side."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Rectangle
+
+    from typ.reporting import subplots
 
     cmap = ListedColormap(COLORS[:N_CLASSES])
     panels = [("truth", truth), *((DISPLAY[m], p) for m, p in predictions.items())]
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.9))
+    fig, axes = subplots(1, len(panels), figsize=(3.6 * len(panels), 3.9))
     for ax, (name, labels) in zip(np.atleast_1d(axes), panels):
         ax.imshow(top_class(labels).T, origin="lower", cmap=cmap, vmin=0, vmax=N_CLASSES - 1,
                   extent=(-50, 50, -50, 50), interpolation="nearest")
         ax.set(title=name, xticks=[-50, 0, 50], yticks=[-50, 0, 50])
-    handles = [plt.Rectangle((0, 0), 1, 1, color=COLORS[i]) for i in range(1, N_CLASSES)]
+    handles = [Rectangle((0, 0), 1, 1, color=COLORS[i]) for i in range(1, N_CLASSES)]
     fig.legend(handles, SSC_CLASSES[1:], loc="lower center", ncol=N_CLASSES - 1, fontsize=8)
     fig.suptitle(title, fontsize=9)
     _savefig(fig, path)
-    plt.close(fig)
     return path
 
 
 def render_curves(results: dict, path: Path) -> Path:
     """mIoU with its interval against each robustness sweep, and the feature-sending methods' against
     message bits."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from typ.reporting import subplots
 
     rob = results["robustness"]
-    fig, axes = plt.subplots(1, 4, figsize=(17, 4))
+    fig, axes = subplots(1, 4, figsize=(17, 4))
     colors = {m: f"C{i}" for i, m in enumerate(DISPLAY)}
     for ax, (sweep, label) in zip(axes, SWEEPS.items()):
         xs = rob["applied_delay_ms"] if sweep == "delay_ms" else rob["levels"][sweep]
@@ -232,7 +227,6 @@ def render_curves(results: dict, path: Path) -> Path:
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     _savefig(fig, path)
-    plt.close(fig)
     return path
 
 

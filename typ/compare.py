@@ -35,6 +35,7 @@ from pathlib import Path
 from typ.config import Config
 from typ.errors import TypError
 from typ.io import atomic_path, write_text
+from typ.reporting import markdown_table
 
 RUN_ID = re.compile(r"^[0-9a-f]{32}$")
 BAND = re.compile(r"^\d+(\.\d+)?-\d+(\.\d+)?$")
@@ -224,38 +225,29 @@ def differing_params(sets: list[RunSet]) -> tuple[list[tuple[str, list[str]]], i
 # ---------------------------------------------------------------- plots
 
 
-def _plt():
+def _colors(n: int) -> list:
     import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _colors(n: int) -> list:
-    plt = _plt()
-    cmap = plt.get_cmap("tab10")
+    cmap = matplotlib.colormaps["tab10"]
     return [cmap(i % 10) for i in range(n)]
 
 
 def _grid(n: int, width: float = 4.6, height: float = 3.2):
-    plt = _plt()
+    from typ.reporting import subplots
+
     cols = min(3, n)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(max(width * cols, 8.0), height * rows + 0.7), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(max(width * cols, 8.0), height * rows + 0.7), squeeze=False)
     for ax in axes.flat[n:]:
         ax.set_visible(False)
     return fig, list(axes.flat[:n])
 
 
 def _save(fig, path: Path, title: str) -> Path:
-    plt = _plt()
     fig.suptitle(title, fontsize=12, fontweight="bold")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -484,8 +476,7 @@ def _fmt(v) -> str:
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    esc = [[c.replace("|", "\\|") for c in r] for r in [header] + rows]
-    return ["| " + " | ".join(esc[0]) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in esc[1:]]
+    return markdown_table(header, rows, escape=True).split("\n")
 
 
 def _natural(name: str) -> list:

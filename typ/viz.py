@@ -35,6 +35,7 @@ from matplotlib.figure import Figure
 
 from typ.errors import TypError
 from typ.io import atomic_path, write_text
+from typ.reporting import markdown_table, subplots
 from typ.scene import SEMANTIC_CLASSES, SEMANTIC_UNKNOWN
 from typ.sim.sensor import SensorSpec
 from typ.voxel import Grid, voxelize
@@ -363,10 +364,8 @@ def panels_figure(panels: Sequence[Panel], *, title: str = "", ncols: int | None
     n = len(panels)
     ncols = ncols or (n if n <= 4 else min(n, 3 if n in (5, 6, 9) else 4))
     nrows = math.ceil(n / ncols)
-    fig = Figure(figsize=(PANEL_INCHES * ncols + (0.6 if colorbar_z else 0), PANEL_INCHES * nrows + (0.4 if title else 0)),
-                 dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(nrows, ncols, squeeze=False)
+    fig, axes = subplots(nrows, ncols, squeeze=False, dpi=DPI, layout="constrained",
+                         figsize=(PANEL_INCHES * ncols + (0.6 if colorbar_z else 0), PANEL_INCHES * nrows + (0.4 if title else 0)))
     for ax, panel in zip(axes.flat, panels):
         draw_panel(ax, panel)
     for ax in list(axes.flat)[n:]:
@@ -505,9 +504,7 @@ def range_figure(points, spec: SensorSpec, *, title: str = "") -> Figure:
     image = range_image(points, spec)
     cmap = colormaps["turbo_r"].with_extremes(bad=BACKGROUND)
     n_beams, n_az = image.shape
-    fig = Figure(figsize=(12, max(1.6, 0.03 * n_beams + 1.0)), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
+    fig, ax = subplots(figsize=(12, max(1.6, 0.03 * n_beams + 1.0)), dpi=DPI, layout="constrained")
     shown = ax.imshow(np.ma.masked_invalid(image), aspect="auto", cmap=cmap, vmin=0.0, vmax=spec.max_range,
                       interpolation="nearest", extent=(-180.0 - spec.azimuth_step_deg / 2,
                                                         180.0 - spec.azimuth_step_deg / 2, n_beams - 0.5, -0.5))
@@ -576,12 +573,11 @@ def _gallery_markdown(samples, names, prefix: str) -> str:
     keys: list[str] = []
     for s in samples:
         keys += [k for k in (s.get("scores") or {}) if k not in keys]
-    lines = ["| sample | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
-    for name, s in zip(names, samples):
-        scores = s.get("scores") or {}
-        cells = [(f"{scores[k]:.3g}" if isinstance(scores[k], (float, np.floating)) else str(scores[k]))
-                 if k in scores else "–" for k in keys]
-        lines.append(f"| [{name}]({prefix}{name}.png) | " + " | ".join(cells) + " |")
+    def cells(name: str, scores: dict) -> list[str]:
+        return [f"[{name}]({prefix}{name}.png)", *((f"{scores[k]:.3g}" if isinstance(scores[k], (float, np.floating))
+                                                   else str(scores[k])) if k in scores else "–" for k in keys)]
+
+    lines = markdown_table(["sample", *keys], (cells(n, s.get("scores") or {}) for n, s in zip(names, samples))).split("\n")
     lines.append("")
     for name in names:
         lines.append(f"![{name}]({prefix}{name}.png)")
