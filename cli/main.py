@@ -197,7 +197,7 @@ def _cmd_check(args) -> int:
 def _cmd_dvc_yaml(args) -> int:
     import difflib
 
-    from typ import dvcyaml
+    from flows import dvcyaml
 
     root = Path(args.root)
     text, path = dvcyaml.render(root), root / "dvc.yaml"
@@ -207,10 +207,10 @@ def _cmd_dvc_yaml(args) -> int:
         return 0
     old = path.read_text() if path.is_file() else ""
     if old == text:
-        print(f"{path} is what typ/stages.py gives")
+        print(f"{path} is what flows/stages.py gives")
         return 0
     sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), text.splitlines(True), str(path), "typ dvc-yaml"))
-    print(f"{path} differs from what typ/stages.py gives: run `typ dvc-yaml`", file=sys.stderr)
+    print(f"{path} differs from what flows/stages.py gives: run `typ dvc-yaml`", file=sys.stderr)
     return 1
 
 
@@ -354,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "points a YAML language server at it)")
     p.add_argument("--out", default="params.schema.json", help="path relative to the root (default: params.schema.json)")
     p.set_defaults(fn=_cmd_schema)
-    p = sub.add_parser("dvc-yaml", help="write dvc.yaml from the stage registry (typ/stages.py), code deps from "
+    p = sub.add_parser("dvc-yaml", help="write dvc.yaml from the stage registry (flows/stages.py), code deps from "
                                         "each flow's imports")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 with a diff when dvc.yaml differs")
     p.set_defaults(fn=_cmd_dvc_yaml)

@@ -1,4 +1,4 @@
-"""The project modules a stage's flow imports, transitively: :mod:`typ.dvcyaml`'s, for the tests."""
+"""The project modules a stage's flow imports, transitively: :mod:`flows.dvcyaml`'s, for the tests."""
 from __future__ import annotations
 
-from typ.dvcyaml import FOLDERS, ROOT, closure, code_deps, imports_of, module_file  # noqa: F401
+from flows.dvcyaml import FOLDERS, ROOT, closure, code_deps, imports_of, module_file  # noqa: F401

@@ -1,4 +1,4 @@
-"""The typ/profiles.yaml keys a stage's dvc.yaml entry must depend on: :mod:`typ.dvcyaml`'s, for the tests."""
+"""The typ/profiles.yaml keys a stage's dvc.yaml entry must depend on: :mod:`flows.dvcyaml`'s, for the tests."""
 from __future__ import annotations
 
-from typ.dvcyaml import profile_params  # noqa: F401
+from flows.dvcyaml import profile_params  # noqa: F401

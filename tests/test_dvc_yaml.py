@@ -1,4 +1,4 @@
-"""dvc.yaml is generated from the stage registry (typ/stages.py): it cannot drift from it."""
+"""dvc.yaml is generated from the stage registry (flows/stages.py): it cannot drift from it."""
 from __future__ import annotations
 
 import subprocess
@@ -6,14 +6,14 @@ import sys
 
 import yaml
 
-from typ import dvcyaml, stages
+from flows import dvcyaml, stages
 from typ.config import Config
 
 ROOT = dvcyaml.ROOT
 
 
 def test_the_committed_dvc_yaml_is_what_the_registry_gives():
-    assert (ROOT / "dvc.yaml").read_text() == dvcyaml.render(), "dvc.yaml drifted from typ/stages.py: run `typ dvc-yaml`"
+    assert (ROOT / "dvc.yaml").read_text() == dvcyaml.render(), "dvc.yaml drifted from flows/stages.py: run `typ dvc-yaml`"
 
 
 def test_every_config_stage_is_registered_in_order_with_its_flow_and_block():

@@ -1,12 +1,13 @@
 """The pipeline's stages, declared once: what each reads, writes and draws.
 
-``dvc.yaml`` is generated from this table (``typ dvc-yaml``, :mod:`typ.dvcyaml`; a test fails
+``dvc.yaml`` is generated from this table (``typ dvc-yaml``, :mod:`flows.dvcyaml`; a test fails
 when the committed file differs), with each stage's code deps taken from its flow's import
 closure and its profile keys from ``typ/profiles.yaml``. Adding a stage is a task module, a
 flow ``flows/<name>.py``, a config block of the same name and one entry here.
 
-This module imports nothing of the pipeline: a stage's flow must not import it either (it is
-not a code dep of any stage, so editing it re-runs nothing).
+It sits with the flows, above tasks, because it reads the method lists tasks own (typ may not
+import tasks); no stage's flow imports it, so it is no stage's code dep and editing it re-runs
+nothing by itself.
 """
 from __future__ import annotations
 
