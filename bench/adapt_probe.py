@@ -1,5 +1,5 @@
 """Probe the adapt stage (TYP Eq. 8-10): retrain it with other settings beside `make run`'s, and
-score each the way the evaluate stage does (issue 13's adaptation target).
+score each the way the evaluate stage does (the adaptation figure of reports/generation_accuracy.md).
 
     python bench/adapt_probe.py '{"epochs": 8}' '{"adv_weight": 4}' ...
 

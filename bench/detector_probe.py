@@ -1,4 +1,4 @@
-"""Probe the fusion benchmark's detectors (issue 14's attempts) on a workspace after `make run`:
+"""Probe the fusion benchmark's detectors (the attempts of reports/fusion_ablation.md) on a workspace after `make run`:
 train a network with fusion-block overrides beside the stage's own, score it on real_cav/test,
 and compare it with the stage's networks by the paired bootstrap of the evaluate stage.
 

@@ -1,5 +1,5 @@
 """Probe the trained generator of `make run` (artifacts/) on held-out target pairs, and retrain
-stage 1 or the stage-2 adapter with other settings beside it (issue 13's ablations).
+stage 1 or the stage-2 adapter with other settings beside it (the ablations of reports/generation_ablation.md).
 
     python bench/generator_probe.py [--split val] [--stage1 '{"min_snr": 0.0}' ...] [--adapter '{"epochs": 30}' ...]
         [--scales 1,2,4,8]

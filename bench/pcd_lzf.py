@@ -5,7 +5,7 @@
 Same LZF payloads, one process, the two decoders taking turns:
 - typ: ``typ.formats.pcd.lzf_decompress`` (a numba kernel, output bounded by the size the header
   promises).
-- pure Python: the decoder typ used before issue 42, kept below verbatim as the baseline (a
+- pure Python: the decoder typ used before the vectorised one, kept below verbatim as the baseline (a
   ``bytearray`` grown token by token; a back reference that overlaps its output is copied one
   period at a time, so a run of zeros at distance 1 costs one Python iteration per byte).
 
@@ -43,7 +43,7 @@ REAL = [("KITTI 000000", "kitti_object_vis/training/velodyne/000000.bin"),
 
 
 def python_lzf_decompress(src: bytes, size: int) -> bytes:
-    """typ's LZF decoder before issue 42 (typ/formats/pcd.py at ccd3eeb), errors reduced to ValueError."""
+    """typ's LZF decoder before the vectorised one (typ/formats/pcd.py at ccd3eeb), errors reduced to ValueError."""
     out = bytearray()
     i, end = 0, len(src)
     while i < end:

@@ -24,7 +24,7 @@ stamped with when and on which machine it was measured.
   "dvc" is the rest of the wall time: dvc's start, hashing, lock and checks between stages.
   Work reported: the seconds a stage's metrics give for its own work (seconds_total, else
   seconds_training). Target for the incremental run: at most 1.5 / N of the full run's time.
-- overhead: what a stage costs beyond its work (issue 18), all in one run, on a throwaway copy
+- overhead: what a stage costs beyond its work, all in one run, on a throwaway copy
   of the project with its own params.yaml, the tiny pipeline `make run` runs: one local Prefect
   server started (timed), then `dvc repro` from nothing with PREFECT_API_URL pointing at it,
   each stage's process tree followed as above. A stage's work is its Prefect flow run (from
@@ -122,7 +122,7 @@ N_TRAIN, N_GEN = 17_400, 36_000    # TYP §4.5: WOD samples the generator is tra
 PROFILE_ORDER = ("tiny", "paper")
 WARMUP_S = 5.0                      # a first call longer than this counts: its warm-up share is small
 NOOP_STAGES = ("simulate", "voxelize")  # per-scene stages: a rerun with nothing changed has nothing to do
-NOOP_TARGET_S, FIXED_TARGET, STARTUP_TARGET_S = 4.0, 0.10, 1.0   # issue 18: no-op stage, fixed share, CLI
+NOOP_TARGET_S, FIXED_TARGET, STARTUP_TARGET_S = 4.0, 0.10, 1.0   # targets: no-op stage, fixed share, CLI start
 
 
 # ---------------------------------------------------------------- pure helpers

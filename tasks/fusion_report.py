@@ -208,7 +208,7 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
             for i, (pair, label) in enumerate((k, v) for k, v in pairs.items() if k in by_pair):
                 lines.append(f"| {METHODS[method].display if i == 0 else ''} | {label} | "
                              + " | ".join(_signed(by_pair[pair].get(ft)) for ft in cols) + " |")
-    lines += ["", "## Targets (issue 14), measured", ""] + [f"- {k}: {v}" for k, v in targets(results).items()]
+    lines += ["", "## Targets, measured", ""] + [f"- {k}: {v}" for k, v in targets(results).items()]
     rob = results["robustness"]
     lines += ["", "## Robustness (V2VSSC §IV), AP@0.5 overall / 50–100 m, oracle networks", "",
               f"Delays are scored on the {rob['delay_frames_scored']} test frames with t ≥ the largest delay; "

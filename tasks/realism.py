@@ -33,7 +33,7 @@ from typ.metrics.intervals import Interval, bootstrap, pooled_ratio
 from typ.projection import RangeLayout, range_image
 from typ.sensors.fit import beam_residuals
 
-#: a point is on a beam within this many degrees of its elevation (issue 37's tolerance)
+#: a point is on a beam within this many degrees of its elevation (the tolerance the generation targets use)
 ON_BEAM_DEG = 0.05
 FEATURES = ("frid", "fpvd")
 #: figure -> True where lower is better

@@ -23,7 +23,7 @@ from test_crash_safety import stage_env
 
 READERS = {"binfile", "pcd", "opv2v", "kitti", "nuscenes", "waymo", "store", "voxel", "params", "cli", "artifact",
            "show"}
-#: what one bad input may take (issue 42): a named error within this time and this much more memory
+#: what one bad input may take: a named error within this time and this much more memory
 SECONDS, MEMORY = 2.0, 1 << 30
 
 

@@ -79,7 +79,7 @@ def test_compare_two_pipeline_runs_writes_report_and_plots(store):
 
 
 def test_a_new_report_replaces_only_the_plots_of_the_earlier_one(store):
-    """Issue 42: the plots an earlier report of the name linked go; a user's file that only looks
+    """The plots an earlier report of the name linked go; a user's file that only looks
     like one (the same name prefix) stays."""
     tmp_path, uri, a, b = store
     out = tmp_path / "reports" / "again"

@@ -14,7 +14,7 @@ The stage processes share one Prefect server and one MLflow database, started on
 session (tests/test_determinism.py and the CLI case of tests/test_bad_inputs.py use the same
 helpers, and the determinism test compares with the same uninterrupted run), so each process
 pays only its imports. The training stage adds about a minute (two more processes); it runs in
-`make test` (issue 13: a resumed run must equal an uninterrupted one).
+`make test` (a resumed run must equal an uninterrupted one).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Seeded byte-level fuzzing of typ's readers (issue 42): no raw traceback, no silent change of count.
+"""Seeded byte-level fuzzing of typ's readers: no raw traceback, no silent change of count.
 
 Each target is a small valid file built here: a PCD of each DATA kind (ascii, binary,
 binary_compressed), a KITTI velodyne ``.bin``, an OPV2V agent ``.yaml``, a ``model.safetensors``

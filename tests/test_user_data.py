@@ -1,4 +1,4 @@
-"""Nothing a user owns is deleted (issue 42, classes 1-5 and 14).
+"""Nothing a user owns is deleted (the classes of input below).
 
 typ deletes or replaces only what it can prove it wrote: a folder holding the manifest
 (``_typ.json``) of the stage that replaces it, a typ voxel file, a checkpoint folder of typ's.

@@ -1316,7 +1316,7 @@ def _(d):
 
 
 # ---------------------------------------------------------------- built to hang, exhaust memory or be misread
-# Issue 42: each must end in a TypError within 2 s and 1 GB (tests/test_bad_inputs.py runs every
+# Each must end in a TypError within 2 s and 1 GB (tests/test_bad_inputs.py runs every
 # reader case in a bounded child process), where typ once hung, ran out of memory, crashed the
 # interpreter, let a raw OverflowError/ValueError/LinAlgError through, or returned other points.
 
