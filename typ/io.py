@@ -19,6 +19,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import sys
 import tempfile
 from pathlib import Path
@@ -64,10 +65,15 @@ def check_folder(path: str | os.PathLike, *, where: str | os.PathLike, field: st
             raise TypError(where, field, f"a folder whose names take at most {NAME_MAX} bytes",
                            f"a name of {len(os.fsencode(part))} bytes: {part[:60]}...")
     for p in (path, *path.parents):
-        if p.is_dir():
-            break
-        if p.exists() or p.is_symlink():
-            raise TypError(where, field, "a folder, or a path where one can be made", f"{p} is a file, not a folder")
+        # one stat per name: checking is_dir() and then exists() let a folder another writer made
+        # between the two calls (parallel scenario writes under a new split) pass for a file
+        try:
+            if stat.S_ISDIR(os.stat(p).st_mode):
+                break
+        except (FileNotFoundError, NotADirectoryError):
+            if not os.path.islink(p):   # nothing there (a dangling link is something)
+                continue
+        raise TypError(where, field, "a folder, or a path where one can be made", f"{p} is a file, not a folder")
     return path
 
 
