@@ -36,8 +36,6 @@ class Stage:
     #: ``per-scene`` (incremental over scenes, content hashes), ``training`` (resumable
     #: checkpoints) or ``scoring`` (reads trained models, writes reports)
     kind: str
-    torch: bool
-    does: str                                   #: one line for the README's stage table
     data: tuple[str, ...] = ()                  #: data and artifact deps
     params: tuple[str, ...] = ()                #: config blocks read besides its own
     outs: tuple[str, ...] = ()                  #: persisted outputs (DVC cache, kept between runs)
@@ -70,44 +68,41 @@ def stages() -> tuple[Stage, ...]:
     target = "data/voxels/dataset=target/split="
     cooperative = [m for m in FUSION_METHODS if m != "none"]
     return (
-        Stage("simulate", "per-scene", False, "simulated scenes of every domain, every agent's view and labels",
-              outs=("data/sim",)),
-        Stage("voxelize", "per-scene", False, "occupancy grids and box maps of every view (per-scene Parquet stores)",
-              data=("data/sim",), outs=("data/voxels",)),
-        Stage("vqvae", "training", True, "the VQ-VAEs of x (occupancy) and y (box maps)",
-              data=(f"{target}train", f"{target}val"), outs=("artifacts/vqvae",), loss_curves=True),
-        Stage("stage1", "training", True, "TYP stage 1: the latent diffusion model P(x_r | y_r)",
-              data=(f"{target}train", f"{target}val", "artifacts/vqvae"), outs=("artifacts/stage1",),
+        Stage("simulate", "per-scene", outs=("data/sim",)),
+        Stage("voxelize", "per-scene", data=("data/sim",), outs=("data/voxels",)),
+        Stage("vqvae", "training", data=(f"{target}train", f"{target}val"), outs=("artifacts/vqvae",),
               loss_curves=True),
-        Stage("adapt", "training", True, "TYP Eq. 8-10: the source encoder adapted to the target decoder",
+        Stage("stage1", "training", data=(f"{target}train", f"{target}val", "artifacts/vqvae"),
+              outs=("artifacts/stage1",), loss_curves=True),
+        Stage("adapt", "training",
               data=("data/voxels/dataset=source/split=train", f"{target}train", "artifacts/vqvae/x"),
               outs=("artifacts/adapt",), loss_curves=True),
-        Stage("stage2", "training", True, "TYP stage 2: the adapter conditioned on the ego's view",
+        Stage("stage2", "training",
               data=("data/sim/source/train", "artifacts/vqvae", "artifacts/adapt/source_vq", "artifacts/stage1"),
               params=("stage1", "voxelize"), outs=("artifacts/stage2",), loss_curves=True),
-        Stage("selftrain", "training", True, "TYP self-training on target pseudo-references, and the generator",
+        Stage("selftrain", "training",
               data=("data/sim/target/train", f"{target}train", "artifacts/vqvae", "artifacts/adapt/source_vq",
                     "artifacts/stage1", "artifacts/stage2"),
               params=("stage2", "stage1", "voxelize"), outs=("artifacts/selftrain",), loss_curves=True),
-        Stage("generate", "per-scene", True, "the collaborative dataset: reference views generated from egos",
+        Stage("generate", "per-scene",
               data=("data/sim/target/pretrain", "data/sim/real_cav/train", "artifacts/selftrain/generator"),
               params=("stage1", "voxelize"), outs=("data/generated",)),
-        Stage("fusion", "training", True, "collaborative detectors on true, generated and simulated data",
+        Stage("fusion", "training",
               data=("data/sim/real_cav/train", "data/sim/real_cav/test", "data/sim/source/train",
                     "data/generated/real_cav/train", "data/generated/target/pretrain"),
               outs=("artifacts/fusion",),
               plots=(Plot("fusion_loss", "step", {"artifacts/fusion/loss.csv": ["oracle", "generated"]}, "smooth",
                           "step", "loss", "single-agent detector training loss, true vs generated cooperating views"),)),
-        Stage("ssc", "training", True, "collaborative semantic scene completion (V2VSSC), trained and scored",
+        Stage("ssc", "training",
               data=("data/sim/real_cav/train", "data/sim/real_cav/test", "data/generated/real_cav/train"),
               outs=("artifacts/ssc",), reports=("reports/ssc.md",),
               images=("reports/ssc_robustness.png", "reports/ssc_gallery.png")),
-        Stage("ddpm", "training", True, "pixel-space LiDAR DDPMs, their sampler benchmark and the FRID/FPVD networks",
+        Stage("ddpm", "training",
               data=("data/sim/target/train", "data/sim/target/test", f"{target}test", "artifacts/vqvae",
                     "artifacts/stage1"),
               params=("stage1",), outs=("artifacts/ddpm",), reports=("reports/ddpm.md",),
               images=("reports/ddpm_pareto.png", "reports/ddpm_samples.png"), loss_curves=True),
-        Stage("evaluate", "scoring", True, "every benchmark table on held-out data, with intervals",
+        Stage("evaluate", "scoring",
               data=("data/sim", "data/voxels", "artifacts/vqvae", "artifacts/adapt/source_vq", "artifacts/stage1",
                     "artifacts/stage2", "artifacts/selftrain", "artifacts/fusion/models",
                     "artifacts/fusion/training.json", "artifacts/ddpm/features"),
@@ -138,6 +133,6 @@ def stages() -> tuple[Stage, ...]:
 
 #: plots of files no stage writes (``make bench``)
 BENCH_PLOTS = (
-    Plot("reports/bench_sampling.csv", "seconds", "error", "scatter", "seconds per sample", "1 - voxel IoU to the truth",
-         "stage-1 samplers x steps x schedules, time against error"),
+    Plot("reports/bench_sampling.csv", "seconds", "error", "scatter", "seconds per sample",
+         "1 - voxel IoU to the truth", "stage-1 samplers x steps x schedules, time against error"),
 )

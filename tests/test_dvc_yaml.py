@@ -38,7 +38,7 @@ def test_a_stage_added_to_the_registry_gets_its_code_params_and_outputs(monkeypa
     (tmp_path / "typ" / "__init__.py").write_text("")
     (tmp_path / "typ" / "io.py").write_text("")
     (tmp_path / "typ" / "profiles.yaml").write_text("tiny:\n  probe: {}\n  fusion: {}\npaper:\n  probe: {}\n")
-    probe = stages.Stage("probe", "training", True, "a probe", data=("data/x",), params=("fusion",),
+    probe = stages.Stage("probe", "training", data=("data/x",), params=("fusion",),
                          outs=("artifacts/probe",), reports=("reports/probe.md",), loss_curves=True)
     monkeypatch.setattr(stages, "stages", lambda: (probe,))
     built = dvcyaml.build(tmp_path)
