@@ -920,7 +920,7 @@ def bench_paper(steps: int) -> dict:
     from models.samplers import make_scheduler, sample
     from models.schedules import alphas_cumprod, betas
     from tasks import stage1, stage2, vqvae
-    from tasks.stage1 import noised_batch
+    from tasks.training import noised_batch
     from typ.config import config_from_dict
 
     cfg = config_from_dict({"profile": "paper"})

@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from typ.config import Config
+from typ.config import SINGLE_AGENT_FORMATS, Config
 from typ.errors import TypError
 from typ.hashcache import ENV as HASH_CACHE_ENV
 from typ.io import check_folder
@@ -362,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=_cmd_report)
     p = sub.add_parser("generate", help="turn KITTI / nuScenes / Waymo frames into collaborative OPV2V scenarios "
                                         "with the trained models")
-    p.add_argument("--format", required=True, help="kitti | nuscenes | waymo")
+    p.add_argument("--format", required=True, help=" | ".join(SINGLE_AGENT_FORMATS))
     p.add_argument("--input", required=True, help="KITTI object root, nuScenes folder (bins + info json), "
                                                   "or Waymo .tfrecord file / folder")
     p.add_argument("--out", default="data/generated_external", help="output root (default: data/generated_external)")

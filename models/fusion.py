@@ -4,11 +4,12 @@ Every method is a :class:`FusionModule` with one forward signature,
 ``module(pillars, *, agent_mask, transforms, time_delay=None, agent_types=None)``, and the hooks
 the benchmark needs: ``detections`` (head -> ego-frame boxes), ``message_bytes`` and
 ``message_bits`` (what a cooperating agent sends, and its quantisation), ``warm_start`` (from a
-trained single-agent detector). :data:`METHODS` is the registry: each :class:`FusionMethod`
-names its module, display name, inputs, training targets, message and whether it runs another
-method's network (no fusion runs late fusion's single-agent detector on the ego's cloud only,
-as OpenCOOD). Its order is the order of the tables; ``typ.config`` takes the allowed names
-from it. A new method is a module and an entry here (plus a config block if it has options).
+trained single-agent detector). :data:`models.registry.METHODS` is the registry (torch-free, so
+the config reads it): each :class:`~models.registry.FusionMethod` names its module, display name,
+inputs, training targets, message and whether it runs another method's network (no fusion runs
+late fusion's single-agent detector on the ego's cloud only, as OpenCOOD). Its order is the
+order of the tables; ``typ.config`` takes the allowed names from it. A new method is a module
+here and an entry there (plus a config block if it has options).
 
 Batch layout: B samples of L agent slots, agent 0 the ego. ``pillars`` is ``pillarize`` of the
 B*L clouds in b-major order (cloud ``b * L + l``, each in its own sensor frame; empty clouds for
@@ -30,8 +31,6 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
@@ -40,6 +39,7 @@ from torch import nn
 
 from models.box_coder import AnchorBoxCoder
 from models.pointpillars import PointPillars, pillars_to_bev
+from models.registry import METHODS, SINGLE_AGENT, FusionMethod  # noqa: F401  (the registry, re-exported)
 from models.warp import warp_bev, warp_valid_mask
 from typ.errors import TypError
 from typ.geometry import transform_points
@@ -475,54 +475,6 @@ def compressed(module: FusionModule, bits: int | None):
         yield module
     finally:
         module.message_bits = saved
-
-
-@dataclass(frozen=True)
-class FusionMethod:
-    """One fusion method of the benchmark: what it is called, what it takes and learns from, and
-    what it sends.
-
-    name: the config's name; display: the row name in TYP Tables 1–3; module: its
-    :class:`FusionModule`; inputs: the clouds of a batch — ``ego`` (the ego's only), ``merged``
-    (all agents' moved into the ego frame, early fusion) or ``agents`` (each in its own frame);
-    targets: ``own`` (a head row per present agent, its own labels in its own frame: the
-    single-agent detector) or ``fused`` (a row per sample, the fused ground truth in the ego
-    frame); trained_as: another method whose trained network this one runs (None: it is trained
-    itself); options: the config block of the module's extra constructor arguments (None: none);
-    message: what a cooperating agent sends (``nothing``, ``points``, ``boxes``, ``features``);
-    warm_start: whether it may start from the single-agent detector (:meth:`FusionModule.warm_start`).
-    The order of :data:`METHODS` is the order of the tables and benches.
-    """
-
-    name: str
-    display: str
-    module: type[FusionModule]
-    inputs: Literal["ego", "merged", "agents"]
-    targets: Literal["own", "fused"]
-    message: Literal["nothing", "points", "boxes", "features"]
-    trained_as: str | None = None
-    options: str | None = None
-    warm_start: bool = False
-
-    @property
-    def network(self) -> str:
-        """The method whose training run makes the network this method runs."""
-        return self.trained_as or self.name
-
-
-#: every fusion method, in bench order; typ.config derives the allowed ``fusion.methods`` from it
-METHODS: dict[str, FusionMethod] = {m.name: m for m in (
-    FusionMethod("none", "No Fusion", NoFusion, inputs="ego", targets="own", message="nothing", trained_as="late"),
-    FusionMethod("early", "Early Fusion", EarlyFusion, inputs="merged", targets="fused", message="points",
-                 warm_start=True),
-    FusionMethod("late", "Late Fusion", LateFusion, inputs="agents", targets="own", message="boxes"),
-    FusionMethod("attfuse", "AttFuse", AttFuse, inputs="agents", targets="fused", message="features",
-                 warm_start=True),
-    FusionMethod("v2xvit", "V2X-ViT", V2XViT, inputs="agents", targets="fused", message="features",
-                 options="v2xvit", warm_start=True),
-)}
-#: the method that trains the single-agent detector every warm start begins from
-SINGLE_AGENT = "late"
 
 
 def method_of(module: nn.Module) -> str:

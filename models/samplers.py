@@ -19,9 +19,10 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
-from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler, UniPCMultistepScheduler
+import diffusers
 from diffusers.schedulers.scheduling_utils import SchedulerMixin
 
+from models.registry import SAMPLERS
 from typ.errors import TypError
 
 __all__ = ["SCHEDULERS", "EpsModel", "make_scheduler", "sample"]
@@ -31,13 +32,9 @@ WHERE = "sampler"
 EpsModel = Callable[[torch.Tensor, torch.Tensor, Any, Any], torch.Tensor]
 """eps_model(x_t (B, ...), t (B,) int64, cond, adapter_features) -> ε̂ shaped like x_t."""
 
+#: the diffusers scheduler class and latent options of every sampler of :data:`models.registry.SAMPLERS`
 SCHEDULERS: dict[str, tuple[type[SchedulerMixin], dict[str, Any]]] = {
-    # clip_sample=False: diffusers clips x̂_0 to [-1, 1] by default, which is wrong for latents.
-    "ddim": (DDIMScheduler, {"clip_sample": False}),
-    "ddpm": (DDPMScheduler, {"clip_sample": False}),
-    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
-    "unipc": (UniPCMultistepScheduler, {}),
-}
+    name: (getattr(diffusers, spec.scheduler), dict(spec.latent)) for name, spec in SAMPLERS.items()}
 PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
 FLOAT_DTYPES = (torch.float32, torch.float16, torch.bfloat16, torch.float64)
 

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from models.fusion import METHODS, SINGLE_AGENT
+from models.registry import METHODS, SINGLE_AGENT
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from models.fusion import METHODS
+from models.registry import METHODS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
 

@@ -6,7 +6,7 @@ only), early fusion, AttFuse and V2X-ViT (each with the fused ground truth in th
 
 Training is :func:`tasks.training.run_loop` (a batch a pure function of (seed, step),
 checkpoints, resume) with Adam (weight decay 1e-4, as OpenCOOD), a learning rate that is a
-function of the step (:func:`learning_rate`: linear warm-up, then cosine decay to 1 % of the
+function of the step (:func:`detector_learning_rate`: linear warm-up, then cosine decay to 1 % of the
 peak, or constant) and OpenCOOD's augmentation (:mod:`tasks.fusion_batch`). BatchNorm running
 statistics are *not* re-estimated after training: they are the training loop's own (momentum
 0.01, as OpenCOOD), which have converged when a run is long and its learning rate has decayed;
@@ -19,7 +19,6 @@ method. Either way the peak learning rate is ``finetune_lr``.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +33,8 @@ from models.fusion import METHODS, FusionModule, build, get_method
 from models.pointpillars import PointPillars
 from tasks.artifacts import load_module, save_module
 from tasks.fusion_batch import Inputs, draw_similarity
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything
+from tasks.training import (batch_rng, grad_norm, learning_rate, run_checkpoint_dir, run_loop, seed_everything,
+                            set_learning_rate)
 from typ import distributed
 from typ.config import DetectorConfig, FusionConfig, as_dict
 from typ.errors import TypError
@@ -106,17 +106,12 @@ class Trained:
                        self.curve)
 
 
-def learning_rate(peak: float, step: int, total: int, schedule: str = "cosine", warmup: float = 0.05) -> float:
-    """The rate of ``step`` of ``total``: linear warm-up over the first ``warmup`` of the run, then
-    ``cosine`` decay to 1 % of ``peak`` at the last step, or ``constant``. A function of the step,
-    so a resumed run continues on the same curve."""
-    n_warm = max(1, int(round(warmup * total)))
-    if step < n_warm:
-        return peak * (step + 1) / n_warm
-    if schedule == "constant" or total <= n_warm + 1:
-        return peak
-    progress = (step - n_warm) / (total - n_warm - 1)
-    return peak * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0))))
+def detector_learning_rate(peak: float, step: int, total: int, schedule: str = "cosine", warmup: float = 0.05) -> float:
+    """The shared schedule (:func:`tasks.training.learning_rate`) as the detectors run it: linear
+    warm-up over the first ``warmup`` fraction of the run (one step at least), then ``cosine``
+    decay to 1 % of ``peak`` at the last step, or ``constant``."""
+    return learning_rate(peak, step, total, warmup=max(1, int(round(warmup * total))), schedule=schedule,
+                         floor=0.01, end=total - 1)
 
 
 def training_fields(method: str, cfg: FusionConfig) -> dict:
@@ -165,9 +160,8 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
     batch_size = min(cfg.batch_size, len(inputs))
 
     def step_fn(step: int) -> dict[str, float]:
-        lr = learning_rate(peak, step, steps, cfg.lr_schedule, cfg.warmup)
-        for group in opt.param_groups:
-            group["lr"] = lr
+        lr = detector_learning_rate(peak, step, steps, cfg.lr_schedule, cfg.warmup)
+        set_learning_rate(opt, lr)
         rng = batch_rng(seed, step)
         indices = rng.choice(len(inputs), size=batch_size, replace=False)
         similarities = np.stack([draw_similarity(rng, cfg.augment) for _ in indices])

@@ -23,7 +23,7 @@ import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -41,17 +41,8 @@ import typ.formats
 import typ.scene
 import typ.sensors.presets
 
-FORMATS = ("kitti", "nuscenes", "waymo")
 #: what the manifest of a scenario written here names as its writer (typ.io.write_manifest)
 STAGE = "ingest"
-#: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
-#: voxel grid's z is relative to it): its preset's, with the source (typ.sensors.presets)
-MOUNT_HEIGHT = {fmt: resolve(fmt).mount_height for fmt in FORMATS}
-#: the formats whose points come in the vehicle frame, origin on the ground under the rear axle
-#: (Waymo), not the LiDAR's
-_VEHICLE_FRAME = ("waymo",)
-#: height of the LiDAR above the frame its points come in: 0 where that is the LiDAR's own
-SENSOR_HEIGHT = {fmt: MOUNT_HEIGHT[fmt] if fmt in _VEHICLE_FRAME else 0.0 for fmt in FORMATS}
 #: typ split -> the dataset's split names it takes when ``splits`` is not given, the first found
 SPLIT_NAMES = {"train": ("train", "training"), "val": ("val", "validation"), "test": ("test", "testing"),
                "pretrain": ("pretrain",)}
@@ -75,25 +66,16 @@ class DatasetScenario:
     parts: tuple = field(default=(), compare=False, hash=False)
 
     def __iter__(self) -> Iterator[Scene]:
-        for stamp, scene in enumerate(self._frames()):
+        reader = READERS[self.fmt]
+        for stamp, scene in enumerate(reader.frames(self)):
             scene = to_sensor_frame(scene, SENSOR_HEIGHT[self.fmt])
-            # nuScenes and KITTI stamps are not the files' order: number the frames as they come
+            # stamps that are not the files' order (nuScenes, KITTI): number the frames as they come
             yield dataclasses.replace(scene, scenario=self.name,
-                                      timestamp=scene.timestamp if self.fmt == "waymo" else f"{stamp:06d}")
-
-    def _frames(self) -> Iterator[Scene]:
-        if self.fmt == "kitti":
-            (root, folder, frame), = self.parts
-            yield read_kitti_frame(root, frame, folder)
-        elif self.fmt == "nuscenes":
-            for record, categories, bin_path, info_path in self.parts:
-                yield record_frame(record, categories, bin_path, info_path)
-        else:
-            yield from iter_waymo_frames(self.files[0])
+                                      timestamp=scene.timestamp if reader.own_timestamps else f"{stamp:06d}")
 
     def key(self) -> str:
         """A digest of everything the scenario's files hold and how they are read."""
-        records = [part[0] for part in self.parts] if self.fmt == "nuscenes" else []
+        records = [part[0] for part in self.parts] if READERS[self.fmt].keyed_records else []
         return hash_files(self.files, extra=hash_obj({"name": self.name, "format": self.fmt, "records": records,
                                                       "code": _CODE}))
 
@@ -117,9 +99,9 @@ def list_dataset(fmt: str, root: str | Path) -> tuple[list[DatasetScenario], dic
         raise TypError(root, "format", f"one of {list(FORMATS)}", fmt)
     if not root.is_dir():
         raise TypError(root, "root", f"a {fmt} dataset folder", "not a folder")
-    scenarios, splits = {"kitti": _kitti, "nuscenes": _nuscenes, "waymo": _waymo}[fmt](root)
+    scenarios, splits = READERS[fmt].find(root)
     if not scenarios:
-        raise TypError(root, "root", f"{fmt} frames ({_LAYOUT[fmt]})", "none found")
+        raise TypError(root, "root", f"{fmt} frames ({READERS[fmt].layout})", "none found")
     by_name: dict[str, DatasetScenario] = {}
     for scenario in scenarios:
         if scenario.name in by_name:
@@ -128,10 +110,6 @@ def list_dataset(fmt: str, root: str | Path) -> tuple[list[DatasetScenario], dic
         by_name[scenario.name] = scenario
     return sorted(scenarios, key=lambda s: s.name), {k: sorted(v) for k, v in splits.items() if v}
 
-
-_LAYOUT = {"kitti": "training/ or testing/ with velodyne/*.bin",
-           "nuscenes": "mmdet3d *info*.json files beside their .pcd.bin clouds",
-           "waymo": "*.tfrecord segments in the root or in training/, validation/, testing/"}
 
 
 def _kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
@@ -221,6 +199,58 @@ def _waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
 def _safe(name: str) -> str:
     """A scenario folder name: letters, digits, ``_`` and ``-`` only, at most 80 characters."""
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in name)[:80]
+
+
+def _kitti_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+    (root, folder, frame), = scenario.parts
+    yield read_kitti_frame(root, frame, folder)
+
+
+def _nuscenes_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+    for record, categories, bin_path, info_path in scenario.parts:
+        yield record_frame(record, categories, bin_path, info_path)
+
+
+def _waymo_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+    yield from iter_waymo_frames(scenario.files[0])
+
+
+@dataclass(frozen=True)
+class Reader:
+    """How one single-agent dataset format is found and read: ``find(root)`` -> (its scenarios, its
+    own splits); ``frames(scenario)`` its frames in time order, one at a time; ``layout`` what a
+    root holds (for the error when it holds nothing). ``vehicle_frame``: points come in the vehicle
+    frame, origin on the ground (lifted by the preset's mount height); ``own_timestamps``: the
+    dataset's stamps are in file order and kept; ``keyed_records``: the scenario's key hashes its
+    parts' records too (nuScenes info entries); ``one_file``: ``typ generate --input`` may name
+    one file of it. Its LiDAR is the preset of the same name (:mod:`typ.sensors.presets`).
+
+    A new format is its reader (``typ/formats/<name>.py``) and an entry in :data:`READERS`, plus
+    its name in the config's ``SOURCE_FORMATS``."""
+
+    find: Callable[[Path], tuple[list[DatasetScenario], dict[str, list[str]]]]
+    frames: Callable[[DatasetScenario], Iterator[Scene]]
+    layout: str
+    vehicle_frame: bool = False
+    own_timestamps: bool = False
+    keyed_records: bool = False
+    one_file: bool = False
+
+
+#: every single-agent format, by name (``simulate.sources.<domain>.format``, ``typ generate --format``)
+READERS: dict[str, Reader] = {
+    "kitti": Reader(_kitti, _kitti_frames, "training/ or testing/ with velodyne/*.bin"),
+    "nuscenes": Reader(_nuscenes, _nuscenes_frames, "mmdet3d *info*.json files beside their .pcd.bin clouds",
+                       keyed_records=True),
+    "waymo": Reader(_waymo, _waymo_frames, "*.tfrecord segments in the root or in training/, validation/, testing/",
+                    vehicle_frame=True, own_timestamps=True, one_file=True),
+}
+FORMATS = tuple(READERS)
+#: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
+#: voxel grid's z is relative to it): its preset's, with the source (typ.sensors.presets)
+MOUNT_HEIGHT = {fmt: resolve(fmt).mount_height for fmt in FORMATS}
+#: height of the LiDAR above the frame its points come in: 0 where that is the LiDAR's own
+SENSOR_HEIGHT = {fmt: MOUNT_HEIGHT[fmt] if READERS[fmt].vehicle_frame else 0.0 for fmt in FORMATS}
 
 
 @dataclass(frozen=True)
@@ -356,8 +386,8 @@ def read_frames(fmt: str, path: str | Path) -> list[DatasetScenario]:
         raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", fmt)
     if not path.exists():
         raise TypError(path, "--input", f"an existing {fmt} file or folder", "not found")
-    if fmt == "waymo" and path.is_file():
-        return [DatasetScenario("waymo", _safe(path.name.split(".")[0]), (path,))]
+    if READERS[fmt].one_file and path.is_file():
+        return [DatasetScenario(fmt, _safe(path.name.split(".")[0]), (path,))]
     return list_dataset(fmt, path)[0]
 
 

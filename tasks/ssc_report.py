@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from models.ssc import SSC_PILLAR
-from tasks.ssc import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
+from tasks.ssc_data import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
 from typ.config import SscConfig
 from typ.io import atomic_path, write_text
 from typ.metrics.ssc import SSC_CLASSES

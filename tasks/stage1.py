@@ -13,10 +13,8 @@ evaluation its spread over training seeds.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import itertools
-import math
 from pathlib import Path
 from typing import Callable
 
@@ -28,7 +26,8 @@ from models.postprocess import postprocess
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_module, save_module
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
+from tasks.training import (EMA, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
+                            run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
 from tasks.voxel_data import ViewSet, load_views
 from typ import distributed
 from typ.config import Stage1Config, as_dict
@@ -87,76 +86,6 @@ def check_latents(cfg: Stage1Config, sample_size: int, where: str) -> None:
                        f"a downsampling factor ({factor}) that divides the latent size {sample_size}", factor)
 
 
-def noised_batch(rng: np.random.Generator, z0: torch.Tensor, abar: torch.Tensor, batch_size: int):
-    """One training batch of the forward process q(z_t | z_0) = N(√ᾱ_t z_0, (1 - ᾱ_t) I).
-
-    Returns (index (B,), t (B,), ε (B, ...), z_t) drawn from ``rng`` alone, so resumed runs
-    draw the same batches.
-    """
-    index = torch.from_numpy(rng.choice(len(z0), size=batch_size, replace=len(z0) < batch_size))
-    t = torch.from_numpy(rng.integers(0, len(abar), batch_size))
-    eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
-    return index, t, eps, forward_process(z0[index], t, eps, abar)
-
-
-def forward_process(z0: torch.Tensor, t: torch.Tensor, eps: torch.Tensor, abar: torch.Tensor) -> torch.Tensor:
-    """z_t = √ᾱ_t · z_0 + √(1 - ᾱ_t) · ε (Eq. 4's noised latent), ᾱ indexed by t (B,)."""
-    a = abar[t].view(-1, *([1] * (z0.ndim - 1)))
-    return a.sqrt() * z0 + (1 - a).sqrt() * eps
-
-
-def prediction_target(prediction: str, eps: torch.Tensor, z0: torch.Tensor, abar_t: torch.Tensor) -> torch.Tensor:
-    """What a network that outputs ``prediction`` (diffusers' names) is trained to return for the
-    noised z_t = √ᾱ z_0 + √(1-ᾱ) ε: ``epsilon`` ε, ``sample`` z_0, ``v_prediction`` v = √ᾱ ε -
-    √(1-ᾱ) z_0. abar_t: (B,) ᾱ of each sample's t."""
-    a = abar_t.view(-1, *([1] * (z0.ndim - 1)))
-    return {"epsilon": lambda: eps, "sample": lambda: z0,
-            "v_prediction": lambda: a.sqrt() * eps - (1 - a).sqrt() * z0}[prediction]()
-
-
-def diffusion_loss(output: torch.Tensor, eps: torch.Tensor, z0: torch.Tensor, t: torch.Tensor, abar: torch.Tensor, *,
-                   prediction: str, min_snr: float) -> torch.Tensor:
-    """Eq. 4 for a network that outputs ``prediction`` (diffusers' names): ``epsilon`` (ε, Eq. 4
-    as written), ``sample`` (z_0) or ``v_prediction`` (v = √ᾱ ε - √(1-ᾱ) z_0). The three share
-    one minimiser, ε̂ = (z_t - √ᾱ ẑ_0) / √(1-ᾱ); they weigh the timesteps differently. With
-    ``min_snr`` > 0 each sample's squared error is weighted by Min-SNR-γ (Hang et al. 2023), in
-    ε terms ``min(SNR, γ) / SNR``: ``min(SNR, γ)`` for ``sample``, ``min(SNR, γ) / (SNR + 1)`` for
-    ``v_prediction`` (SNR = ᾱ / (1 - ᾱ)); 0 leaves the plain mean squared error."""
-    target = prediction_target(prediction, eps, z0, abar[t].to(output.device))
-    per_sample = ((output.float() - target) ** 2).flatten(1).mean(1)
-    if not min_snr:
-        return per_sample.mean()
-    snr = (abar[t] / (1 - abar[t])).to(output.device)
-    weight = torch.clamp(snr, max=min_snr) / {"epsilon": snr, "sample": torch.ones_like(snr), "v_prediction": snr + 1}[prediction]
-    return (per_sample * weight).mean()
-
-
-def learning_rate(peak: float, step: int, total: int, *, warmup: int, schedule: str) -> float:
-    """Linear warm-up over ``warmup`` steps, then ``constant`` or a ``cosine`` decay to 10 % of
-    ``peak`` at ``total``; a function of the step, so a resumed run continues on the same curve."""
-    if step < warmup:
-        return peak * (step + 1) / warmup
-    if schedule == "constant":
-        return peak
-    progress = (step - warmup) / max(1, total - warmup)
-    return peak * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
-
-
-class EMA:
-    """Exponential moving average of a module's parameters (buffers copied): ``shadow``."""
-
-    def __init__(self, model: torch.nn.Module, decay: float):
-        self.decay = decay
-        self.shadow = copy.deepcopy(model).eval().requires_grad_(False)
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        for s, p in zip(self.shadow.parameters(), model.parameters()):
-            s.lerp_(p.detach(), 1 - self.decay)
-        for s, b in zip(self.shadow.buffers(), model.buffers()):
-            s.copy_(b)
-
-
 def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, seed: int, views: int, out: Path,
           log_fn: Callable[[dict, int], None]) -> LatentDiffusion:
     """Eq. 4: E_{t, ε} ||ε - ε_θ(√ᾱ_t x^f + √(1-ᾱ_t) ε, y^f, t)||², resuming from checkpoints.
@@ -178,9 +107,8 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, seed:
     ckpt_dir = run_checkpoint_dir(out / "checkpoints" / f"seed_{seed}", key)
 
     def step_fn(step: int) -> dict[str, float]:
-        lr = learning_rate(cfg.lr, step, total, warmup=cfg.warmup_steps, schedule=cfg.lr_schedule)
-        for group in opt.param_groups:
-            group["lr"] = lr
+        lr = learning_rate(cfg.lr, step, total, warmup=cfg.warmup_steps, schedule=cfg.lr_schedule, floor=0.1)
+        set_learning_rate(opt, lr)
         index, t, eps, z_t = noised_batch(batch_rng(seed, step), z0, abar, cfg.batch_size)
         t, eps, z_t, cond_t, z0_t = distributed.local_batch(t, eps, z_t, c[index], z0[index])
         dev = distributed.device()

@@ -33,8 +33,9 @@ from models.ldm import LatentDiffusion
 from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_module, save_module
 from tasks.pairs import Pair
-from tasks.stage1 import EMA, diffusion_loss, learning_rate, noised_batch, train_views
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
+from tasks.stage1 import train_views
+from tasks.training import (EMA, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
+                            run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
 from tasks.voxel_data import apply_dihedral
 from typ import distributed
 from typ.config import as_dict
@@ -235,9 +236,8 @@ def _fit(trained: torch.nn.Module, predict: Callable, data: Latents, *, schedule
     opt = torch.optim.AdamW(trained.parameters(), lr=s.lr, weight_decay=0.0)
 
     def step_fn(step: int) -> dict[str, float]:
-        lr = learning_rate(s.lr, step, total, warmup=s.warmup_steps, schedule=s.lr_schedule)
-        for group in opt.param_groups:
-            group["lr"] = lr
+        lr = learning_rate(s.lr, step, total, warmup=s.warmup_steps, schedule=s.lr_schedule, floor=0.1)
+        set_learning_rate(opt, lr)
         index, t, eps, z_t = noised_batch(batch_rng(s.seed, step), data.z0, abar, s.batch_size)
         t, eps, z_t, cond, ego, z0 = distributed.local_batch(t, eps, z_t, data.cond[index], data.ego[index],
                                                              data.z0[index])

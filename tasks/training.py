@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import math
 import re
@@ -76,6 +77,18 @@ def run_checkpoint_dir(root: Path, key: str) -> Path:
         if old.name != key and _checkpoints_only(old):
             shutil.rmtree(old, ignore_errors=True)
     return root / key
+
+
+def drop_checkpoints(folder: Path, *, up_to: Path) -> None:
+    """Remove a finished run's checkpoint ``folder`` (:func:`run_checkpoint_dir`) once its model is
+    saved, then the folders above it up to ``up_to`` that it leaves empty. Only a folder holding
+    nothing but checkpoints and temporaries goes; anything else is kept."""
+    if _checkpoints_only(folder):
+        shutil.rmtree(folder, ignore_errors=True)
+    parent = folder.parent
+    while parent != up_to and up_to in parent.parents and parent.is_dir() and not any(parent.iterdir()):
+        parent.rmdir()
+        parent = parent.parent
 
 
 def _checkpoints_only(folder: Path) -> bool:
@@ -199,6 +212,87 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
     if curve is not None and main:
         write_curve(Path(curve), history)
     return LoopResult(total_steps - start, start, last, history)
+
+
+def learning_rate(peak: float, step: int, total: int, *, warmup: int = 0, schedule: str = "cosine",
+                  floor: float = 0.0, end: int | None = None) -> float:
+    """The rate of ``step`` (0-based) of a ``total``-step run, every training stage's one schedule:
+    a linear warm-up over the first ``warmup`` steps, then ``constant`` at ``peak`` or a ``cosine``
+    decay from ``peak`` to ``floor`` × ``peak`` at step ``end`` (default ``total``; ``total - 1``
+    reaches the floor on the last step). A function of the step, so a resumed run continues on the
+    same curve. Stages 1 and 2 and self-training decay to 10 % at ``total``, the detectors to 1 % on
+    their last step, SSC to 0 at ``total`` without warm-up (torch's ``CosineAnnealingLR``)."""
+    if step < warmup:
+        return peak * (step + 1) / warmup
+    end = total if end is None else end
+    if schedule == "constant" or end <= warmup:
+        return peak
+    progress = (step - warmup) / (end - warmup)
+    return peak * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0))))
+
+
+def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
+def noised_batch(rng: np.random.Generator, z0: torch.Tensor, abar: torch.Tensor, batch_size: int):
+    """One training batch of the forward process q(z_t | z_0) = N(√ᾱ_t z_0, (1 - ᾱ_t) I).
+
+    Returns (index (B,), t (B,), ε (B, ...), z_t) drawn from ``rng`` alone, so resumed runs
+    draw the same batches.
+    """
+    index = torch.from_numpy(rng.choice(len(z0), size=batch_size, replace=len(z0) < batch_size))
+    t = torch.from_numpy(rng.integers(0, len(abar), batch_size))
+    eps = torch.from_numpy(rng.standard_normal(z0[index].shape).astype(np.float32))
+    return index, t, eps, forward_process(z0[index], t, eps, abar)
+
+
+def forward_process(z0: torch.Tensor, t: torch.Tensor, eps: torch.Tensor, abar: torch.Tensor) -> torch.Tensor:
+    """z_t = √ᾱ_t · z_0 + √(1 - ᾱ_t) · ε (Eq. 4's noised latent), ᾱ indexed by t (B,)."""
+    a = abar[t].view(-1, *([1] * (z0.ndim - 1)))
+    return a.sqrt() * z0 + (1 - a).sqrt() * eps
+
+
+def prediction_target(prediction: str, eps: torch.Tensor, z0: torch.Tensor, abar_t: torch.Tensor) -> torch.Tensor:
+    """What a network that outputs ``prediction`` (diffusers' names) is trained to return for the
+    noised z_t = √ᾱ z_0 + √(1-ᾱ) ε: ``epsilon`` ε, ``sample`` z_0, ``v_prediction`` v = √ᾱ ε -
+    √(1-ᾱ) z_0. abar_t: (B,) ᾱ of each sample's t."""
+    a = abar_t.view(-1, *([1] * (z0.ndim - 1)))
+    return {"epsilon": lambda: eps, "sample": lambda: z0,
+            "v_prediction": lambda: a.sqrt() * eps - (1 - a).sqrt() * z0}[prediction]()
+
+
+def diffusion_loss(output: torch.Tensor, eps: torch.Tensor, z0: torch.Tensor, t: torch.Tensor, abar: torch.Tensor, *,
+                   prediction: str, min_snr: float) -> torch.Tensor:
+    """Eq. 4 for a network that outputs ``prediction`` (diffusers' names): ``epsilon`` (ε, Eq. 4
+    as written), ``sample`` (z_0) or ``v_prediction`` (v = √ᾱ ε - √(1-ᾱ) z_0). The three share
+    one minimiser, ε̂ = (z_t - √ᾱ ẑ_0) / √(1-ᾱ); they weigh the timesteps differently. With
+    ``min_snr`` > 0 each sample's squared error is weighted by Min-SNR-γ (Hang et al. 2023), in
+    ε terms ``min(SNR, γ) / SNR``: ``min(SNR, γ)`` for ``sample``, ``min(SNR, γ) / (SNR + 1)`` for
+    ``v_prediction`` (SNR = ᾱ / (1 - ᾱ)); 0 leaves the plain mean squared error."""
+    target = prediction_target(prediction, eps, z0, abar[t].to(output.device))
+    per_sample = ((output.float() - target) ** 2).flatten(1).mean(1)
+    if not min_snr:
+        return per_sample.mean()
+    snr = (abar[t] / (1 - abar[t])).to(output.device)
+    weight = torch.clamp(snr, max=min_snr) / {"epsilon": snr, "sample": torch.ones_like(snr), "v_prediction": snr + 1}[prediction]
+    return (per_sample * weight).mean()
+
+
+class EMA:
+    """Exponential moving average of a module's parameters (buffers copied): ``shadow``."""
+
+    def __init__(self, model: torch.nn.Module, decay: float):
+        self.decay = decay
+        self.shadow = copy.deepcopy(model).eval().requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        for s, p in zip(self.shadow.parameters(), model.parameters()):
+            s.lerp_(p.detach(), 1 - self.decay)
+        for s, b in zip(self.shadow.buffers(), model.buffers()):
+            s.copy_(b)
 
 
 def grad_norm(parameters) -> float:

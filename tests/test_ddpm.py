@@ -13,7 +13,7 @@ from tasks import ddpm as stage
 from tasks.ddpm_metrics import score, set_stats
 from tasks import ddpm_report
 from tasks.ddpm_report import targets
-from tasks.stage1 import prediction_target
+from tasks.training import prediction_target
 from tasks.lidar_features import FeatureNets, build as build_net, voxel_labels
 from tasks.training import TrainingDiverged
 from typ.config import config_from_dict

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from models.box_coder import AnchorBoxCoder
-from models.fusion import (METHODS, AttFuse, EarlyFusion, HeteroAgentAttention, LateFusion, NoFusion, V2XViT, build,
-                           compressed, merge_agent_points, method_of, quantize, transform_boxes)
+from models.fusion import (METHODS, AttFuse, EarlyFusion, FusionModule, HeteroAgentAttention, LateFusion, NoFusion,
+                           V2XViT, build, compressed, merge_agent_points, method_of, quantize, transform_boxes)
 from models.pointpillars import PointPillars, pillarize
 from models.warp import communication_mask, warp_bev
 from typ.geometry import pose_to_matrix, relative_transform, transform_boxes as np_transform_boxes, transform_points
@@ -360,7 +360,16 @@ def test_quantization_is_exact_at_high_bit_widths_and_coarse_at_low():
     assert torch.allclose(coarse.amin((2, 3)), x.amin((2, 3))) and torch.allclose(coarse.amax((2, 3)), x.amax((2, 3)))
 
 
-def test_params_checking_knows_every_fusion_method_in_registry_order():
-    from typ.config import FUSION_METHODS
+def test_params_checking_reads_the_registry_without_torch():
+    """The config offers the registry's fusion methods and samplers in its order, and reading them
+    imports neither torch nor diffusers (``typ check`` and ``typ --help`` stay fast)."""
+    import subprocess
+    import sys
 
-    assert tuple(METHODS) == FUSION_METHODS
+    code = ("import sys, typing, typ.config as c; from models.registry import METHODS, SAMPLERS; "
+            "assert c.FUSION_METHODS == c.SSC_METHODS == tuple(METHODS); "
+            "assert typing.get_args(c.Sampler) == tuple(SAMPLERS); "
+            "assert not {'torch', 'diffusers'} & set(sys.modules), sorted(m for m in sys.modules if 'torch' in m)[:5]")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    for m in METHODS.values():   # every entry names a module of models.fusion
+        assert issubclass(m.module, FusionModule) and m.module.__name__ == m.module_name

@@ -10,7 +10,7 @@ import torch
 from models.fusion import METHODS, LateFusion, NoFusion
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset
-from tasks.fusion_train import Trained, build_model, learning_rate, load, save, train
+from tasks.fusion_train import Trained, build_model, detector_learning_rate, load, save, train
 from tasks.training import checkpoints
 from typ.config import config_from_dict
 from typ.errors import TypError
@@ -38,11 +38,11 @@ def setup(tmp_path_factory):
 
 
 def test_learning_rate_warms_up_then_decays_to_a_hundredth():
-    lrs = [learning_rate(1.0, s, 100, "cosine", 0.1) for s in range(100)]
+    lrs = [detector_learning_rate(1.0, s, 100, "cosine", 0.1) for s in range(100)]
     assert lrs[0] == pytest.approx(0.1) and lrs[9] == pytest.approx(1.0)
     assert all(a >= b for a, b in zip(lrs[9:], lrs[10:]))
     assert lrs[-1] == pytest.approx(0.01) and lrs[54] == pytest.approx(0.505, abs=0.01)
-    assert [learning_rate(1.0, s, 100, "constant", 0.1) for s in (0, 9, 50, 99)] == [pytest.approx(0.1), 1, 1, 1]
+    assert [detector_learning_rate(1.0, s, 100, "constant", 0.1) for s in (0, 9, 50, 99)] == [pytest.approx(0.1), 1, 1, 1]
 
 
 def test_training_resumes_from_its_last_checkpoint(setup, tmp_path):

@@ -379,3 +379,14 @@ def test_ddpm_says_why_it_cannot_train_on_scans_without_point_classes(tmp_path):
     assert md.read_text() == f"# LiDAR DDPM\n\nNot run: {reason}.\n"
     assert [p.name for p in pngs] == ["ddpm_pareto.png", "ddpm_samples.png"]
     assert all(Image.open(p).size == (700, 160) for p in pngs)
+
+
+def test_the_config_offers_exactly_the_registered_readers():
+    """``simulate.sources.<domain>.format`` and ``typ generate --format`` take the reader registry's
+    names; each reader's LiDAR is the preset of its name."""
+    from tasks.ingest import MOUNT_HEIGHT, READERS
+    from typ.config import SINGLE_AGENT_FORMATS, SOURCE_FORMATS
+    from typ.sensors import resolve
+
+    assert tuple(READERS) == SINGLE_AGENT_FORMATS and SOURCE_FORMATS == SINGLE_AGENT_FORMATS + ("opv2v",)
+    assert MOUNT_HEIGHT == {name: resolve(name).mount_height for name in READERS}

@@ -127,3 +127,52 @@ def test_adapters_resume_to_the_uninterrupted_model(tmp_path, one_stage):
                                   key_extra={}, out=out, log_fn=log)
 
     _resumed_equals_uninterrupted(fit, tmp_path)
+
+
+class _KilledAt(list):
+    """The views of an SSC training set that raise :class:`Killed` at the ``at``-th read: a kill in
+    the middle of a step, after the checkpoint of step ``CHECKPOINT_EVERY``."""
+
+    def __init__(self, items, at: int):
+        super().__init__(items)
+        self.reads, self.at = 0, at
+
+    def __getitem__(self, k):
+        self.reads += 1
+        if self.reads == self.at:
+            raise Killed
+        return super().__getitem__(k)
+
+
+def test_ssc_networks_resume_to_the_uninterrupted_model(tmp_path):
+    """The SSC stage's networks train on the shared loop: killed in step 2, resumed from the
+    checkpoint of step 2, they end at the uninterrupted run's weights and losses."""
+    from tasks import ssc as S
+    from typ.ssc import SSC_GRID
+
+    rng = np.random.default_rng(0)
+    views = []
+    for _ in range(3):
+        cloud = np.concatenate([rng.uniform([-40, -40, -2.5], [40, 40, 3.0], (3000, 3)), rng.random((3000, 1))], 1)
+        views.append((cloud.astype(np.float32), rng.integers(0, S.N_CLASSES, SSC_GRID.shape).astype(np.uint8)))
+    kw = dict(layer_nums=(1, 1, 1), num_filters=(8, 8, 8), num_upsample_filters=(8, 8, 8), pillar_channels=8, head_hidden=8,
+              max_pillars=4096)
+    weights = np.linspace(0.5, 2.0, S.N_CLASSES)
+
+    def train(folder, killed_at=None):
+        data = S.TrainingSet(_KilledAt(views, killed_at or 10**9), [], [], "k", [True] * 3)
+        return S.train_single(data, steps=6, seed=1, lr=5e-3, model_kw=kw, weights=weights, checkpoints=folder,
+                              checkpoint_every=CHECKPOINT_EVERY)
+
+    with pytest.raises(Killed):
+        train(tmp_path / "killed", killed_at=KILL_AT)
+    from tasks.training import checkpoints
+    assert [s for s, _ in checkpoints(tmp_path / "killed")] == [CHECKPOINT_EVERY]
+    resumed, resumed_losses = train(tmp_path / "killed")
+    whole, whole_losses = train(tmp_path / "whole")
+    assert len(whole_losses) == 6 and resumed_losses == whole_losses
+    a, b = resumed.state_dict(), whole.state_dict()
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    assert [s for s, _ in checkpoints(tmp_path / "whole")] == [4, 6]   # the last two kept

@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from models.fusion import NoFusion, build
+from models.ssc import ssc_detector
 from tasks import ssc as S
 from tasks import ssc_report
+from tasks import ssc_train as T
 from tasks.simulate import ScenarioJob
+from tasks.training import seed_everything
 from typ.config import config_from_dict
 from typ.errors import TypError
 from typ.metrics.ssc import ssc_iou
@@ -96,11 +100,11 @@ def test_v2xvit_runs_its_configured_transformer_with_an_occupancy_head(trained, 
     assert isinstance(module.head, OccupancyHead) and module.head.up[0].in_channels == V2XVIT["dim"]
     assert module.feature_stride == 2 * single.feature_stride and module.head.up[0].stride == (4, 4)
     test = S.ssc_dataset(root / "data/sim/real_cav/test")
-    pillars, kw = S._inputs(single, "v2xvit", test[0])
+    pillars, kw = T._inputs(single, "v2xvit", test[0])
     assert module(pillars, **kw)["occ"].shape == (1, 7, 128, 128, 20)
     # fine-tuned from the single-agent network, not from scratch: the backbone moved away from it
     # by a little, the fresh V2X-ViT of the same seed is far further
-    fresh = S.build("v2xvit", S.ssc_detector(**S.model_kwargs(block)), S.network_options(block, "v2xvit"))
+    fresh = build("v2xvit", ssc_detector(**S.model_kwargs(block)), S.network_options(block, "v2xvit"))
     moved = [(a - b).abs().max().item() for a, b in zip(module.backbone.parameters(), single.backbone.parameters())]
     scratch = [(a - b).abs().max().item() for a, b in zip(fresh.backbone.parameters(), single.backbone.parameters())]
     assert max(moved) < max(scratch)
@@ -278,8 +282,8 @@ def test_ignored_voxels_are_left_out_of_the_loss(root):
     weights = np.linspace(0.5, 2.0, 7)
     kw = S.model_kwargs(_block(root))
     _, losses = S.train_single(one, steps=1, seed=3, lr=1e-3, model_kw=kw, weights=weights)
-    S.seed_everything(3)
-    model = S.NoFusion(detector=S.ssc_detector(**kw)).train()
+    seed_everything(3)
+    model = NoFusion(detector=ssc_detector(**kw)).train()
     with torch.no_grad():
         logits = model(model.detector.pillarize([cloud]), agent_mask=torch.ones(1, 1, dtype=torch.bool))["occ"][0]
     keep = torch.from_numpy(masked != S.IGNORE)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from models.schedules import alphas_cumprod, betas
-from tasks.stage1 import EMA, diffusion_loss, forward_process, learning_rate, noised_batch
+from tasks.training import EMA, diffusion_loss, forward_process, learning_rate, noised_batch
 
 
 @pytest.fixture(scope="module")
@@ -67,13 +67,26 @@ def test_min_snr_weights_in_epsilon_terms(abar):
 
 
 def test_learning_rate_warms_up_then_decays_to_a_tenth():
-    lrs = [learning_rate(1.0, s, 100, warmup=10, schedule="cosine") for s in range(100)]
+    lrs = [learning_rate(1.0, s, 100, warmup=10, schedule="cosine", floor=0.1) for s in range(100)]
     assert lrs[0] == pytest.approx(0.1) and lrs[9] == pytest.approx(1.0)
     assert all(a >= b for a, b in zip(lrs[10:], lrs[11:]))
-    assert learning_rate(1.0, 100, 100, warmup=10, schedule="cosine") == pytest.approx(0.1)
-    assert learning_rate(1.0, 55, 100, warmup=10, schedule="constant") == 1.0
-    assert learning_rate(2.0, 55, 100, warmup=10, schedule="cosine") == pytest.approx(
+    assert learning_rate(1.0, 100, 100, warmup=10, schedule="cosine", floor=0.1) == pytest.approx(0.1)
+    assert learning_rate(1.0, 55, 100, warmup=10, schedule="constant", floor=0.1) == 1.0
+    assert learning_rate(2.0, 55, 100, warmup=10, schedule="cosine", floor=0.1) == pytest.approx(
         2.0 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 0.5))))
+
+
+def test_learning_rate_without_warm_up_or_floor_is_torchs_cosine_annealing():
+    """The SSC networks' schedule: torch's CosineAnnealingLR (T_max = the run), to the last bits
+    of its recursive form."""
+    p = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.Adam([p], lr=0.002)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=150)
+    for step in range(150):
+        assert learning_rate(0.002, step, 150) == pytest.approx(opt.param_groups[0]["lr"], rel=1e-12, abs=1e-18)
+        opt.step()
+        sched.step()
+    assert learning_rate(0.002, 150, 150) == pytest.approx(0.0, abs=1e-18)
 
 
 def test_ema_tracks_the_weights_and_copies_buffers():

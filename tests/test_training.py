@@ -70,3 +70,22 @@ def test_exploding_gradient_stops(tmp_path):
     with pytest.raises(TrainingDiverged, match="grad_norm"):
         run_loop(name="t", total_steps=3, step_fn=lambda s: {**step_fn(s), "grad_norm": 1e9},
                  get_state=get, set_state=set_, checkpoint_dir=tmp_path, checkpoint_every=1)
+
+
+def test_a_finished_runs_checkpoints_go_and_nothing_else(tmp_path):
+    """drop_checkpoints removes the run's folder of checkpoints and the empty folders above it up
+    to the stage's output, and keeps a folder holding anything typ did not write there."""
+    from tasks.training import drop_checkpoints, save_checkpoint
+
+    out = tmp_path / "out"
+    run = out / "checkpoints" / "oracle" / "single-seed0" / "key1"
+    save_checkpoint(run, 2, {"w": torch.zeros(1)})
+    (out / "model.json").parent.mkdir(parents=True, exist_ok=True)
+    (out / "model.json").write_text("{}")
+    drop_checkpoints(run, up_to=out)
+    assert sorted(p.name for p in out.iterdir()) == ["model.json"]
+    mine = out / "checkpoints" / "generated" / "single-seed0" / "key2"
+    save_checkpoint(mine, 2, {"w": torch.zeros(1)})
+    (mine / "notes.txt").write_text("a user's file")
+    drop_checkpoints(mine, up_to=out)
+    assert (mine / "notes.txt").read_text() == "a user's file" and (mine / "step_00000002.pt").is_file()

@@ -1,0 +1,101 @@
+"""The extensible kinds typ's config names, each declared once, without torch.
+
+``typ.config`` (and so ``typ check``, ``typ --help`` and the params schema) offers exactly the names
+of these tables, and the code that runs them reads the same entries:
+
+- :data:`SAMPLERS`: the diffusion samplers, as diffusers schedulers (:mod:`models.samplers` builds
+  them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
+- :data:`METHODS`: the collaborative fusion methods of the detection and SSC benchmarks; each
+  entry names its module class in :mod:`models.fusion` (imported only when a module is built).
+
+The noise schedules' table is :data:`models.schedules.SCHEDULES` (numpy only).
+A new sampler is one entry here; a new fusion method is its module and one entry here (plus a
+config block if it has options).
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+
+@dataclass(frozen=True)
+class SamplerSpec:
+    """One sampler: ``scheduler`` the diffusers class name; ``latent`` its options for typ's latents
+    (diffusers clips x̂_0 to [-1, 1] by default, wrong for latents); ``pixel`` the options that
+    clip x̂_0 to [-1, 1] at each step for pixel samples (Ho et al.'s clip, or dynamic thresholding
+    with a maximum of 1 for the multistep solvers)."""
+
+    scheduler: str
+    latent: dict[str, Any] = field(default_factory=dict)
+    pixel: dict[str, Any] = field(default_factory=dict)
+
+
+#: every sampler typ runs, by config name
+SAMPLERS: dict[str, SamplerSpec] = {
+    "ddim": SamplerSpec("DDIMScheduler", {"clip_sample": False}, {"clip_sample": True}),
+    "ddpm": SamplerSpec("DDPMScheduler", {"clip_sample": False}, {"clip_sample": True}),
+    "dpmsolver++": SamplerSpec("DPMSolverMultistepScheduler", {"algorithm_type": "dpmsolver++"},
+                               {"thresholding": True, "sample_max_value": 1.0}),
+    "unipc": SamplerSpec("UniPCMultistepScheduler", {}, {"thresholding": True, "sample_max_value": 1.0}),
+}
+
+
+@dataclass(frozen=True)
+class FusionMethod:
+    """One fusion method of the benchmark: what it is called, what it takes and learns from, and
+    what it sends.
+
+    name: the config's name; display: the row name in TYP Tables 1–3; module_name: its
+    :class:`models.fusion.FusionModule` class (:attr:`module`); inputs: the clouds of a batch —
+    ``ego`` (the ego's only), ``merged`` (all agents' moved into the ego frame, early fusion) or
+    ``agents`` (each in its own frame); targets: ``own`` (a head row per present agent, its own
+    labels in its own frame: the single-agent detector) or ``fused`` (a row per sample, the fused
+    ground truth in the ego frame); trained_as: another method whose trained network this one runs
+    (None: it is trained itself); options: the config block of the module's extra constructor
+    arguments (None: none); message: what a cooperating agent sends (``nothing``, ``points``,
+    ``boxes``, ``features``); warm_start: whether it may start from the single-agent detector
+    (:meth:`models.fusion.FusionModule.warm_start`).
+
+    The order of :data:`METHODS` is the order of the tables and benches.
+    """
+
+    name: str
+    display: str
+    module_name: str
+    inputs: Literal["ego", "merged", "agents"]
+    targets: Literal["own", "fused"]
+    message: Literal["nothing", "points", "boxes", "features"]
+    trained_as: str | None = None
+    options: str | None = None
+    warm_start: bool = False
+
+    @property
+    def network(self) -> str:
+        """The method whose training run makes the network this method runs."""
+        return self.trained_as or self.name
+
+    @property
+    def module(self) -> type:
+        """The module class (imports :mod:`models.fusion`, and so torch)."""
+        return getattr(importlib.import_module("models.fusion"), self.module_name)
+
+    @property
+    def intermediate_display(self) -> str:
+        """The row name in V2VSSC's tables: feature-sending methods are ``Intermediate (<name>)``."""
+        return f"Intermediate ({self.display})" if self.message == "features" else self.display
+
+
+#: every fusion method, in bench order
+METHODS: dict[str, FusionMethod] = {m.name: m for m in (
+    FusionMethod("none", "No Fusion", "NoFusion", inputs="ego", targets="own", message="nothing", trained_as="late"),
+    FusionMethod("early", "Early Fusion", "EarlyFusion", inputs="merged", targets="fused", message="points",
+                 warm_start=True),
+    FusionMethod("late", "Late Fusion", "LateFusion", inputs="agents", targets="own", message="boxes"),
+    FusionMethod("attfuse", "AttFuse", "AttFuse", inputs="agents", targets="fused", message="features",
+                 warm_start=True),
+    FusionMethod("v2xvit", "V2X-ViT", "V2XViT", inputs="agents", targets="fused", message="features",
+                 options="v2xvit", warm_start=True),
+)}
+#: the method that trains the single-agent detector every warm start begins from
+SINGLE_AGENT = "late"

@@ -1,0 +1,365 @@
+"""The blocks of TYP's generator: ``vqvae``, ``stage1``, ``adapt``, ``stage2``, ``selftrain`` and
+``generate`` (TYP §3)."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+from typ.config.base import Sampler, Schedule, _positive_fields
+from typ.errors import TypError
+
+
+@dataclass(frozen=True)
+class AutoencoderConfig:
+    """One VQ-VAE of TYP §3.2 (x or y): widths per level (``len - 1`` halvings), code size."""
+
+    block_out_channels: tuple[int, ...]
+    latent_channels: int
+    num_codes: int
+    norm_num_groups: int
+    gamma: float
+    epochs: int
+    #: "ema": EMA codebook with k-means init and dead-code restarts; "vq": Eq. 1's codebook term
+    quantizer: Literal["ema", "vq"] = "ema"
+    #: y only: "vqvae" (TYP: E_y, Q_y, G_y) or "pool" (the box map averaged per latent cell)
+    encoding: Literal["vqvae", "pool"] = "vqvae"
+    ema_decay: float = 0.9
+    dead_code_threshold: float = 1.0
+
+    def check(self, where: str, name: str) -> None:
+        if not 0 < self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in (0, 1)", self.ema_decay)
+        if self.dead_code_threshold < 0:
+            raise TypError(where, f"{name}.dead_code_threshold", "an EMA cluster size >= 0", self.dead_code_threshold)
+        if len(self.block_out_channels) < 1 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+            raise TypError(where, f"{name}.block_out_channels",
+                           f"positive widths divisible by norm_num_groups={self.norm_num_groups}",
+                           list(self.block_out_channels))
+        _positive_fields(self, where, name, "latent_channels", "num_codes", "norm_num_groups", "epochs")
+        if self.gamma < 0:
+            raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0 (0 is plain BCE)", self.gamma)
+
+
+@dataclass(frozen=True)
+class VQVAEStageConfig:
+    """Stage ``vqvae``: E_x,Q_x,G_x and E_y,Q_y,G_y trained on the target domain's ego views."""
+
+    x: AutoencoderConfig
+    y: AutoencoderConfig
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    threshold: float
+    input: str
+    dataset: str
+    train_split: str
+    eval_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        self.x.check(where, f"{name}.x")
+        self.y.check(where, f"{name}.y")
+        if len(self.x.block_out_channels) != len(self.y.block_out_channels):
+            raise TypError(where, f"{name}.y.block_out_channels",
+                           "as many levels as x (x^f and y^f must share one latent resolution)",
+                           list(self.y.block_out_channels))
+        _positive_fields(self, where, name, "batch_size", "lr", "checkpoint_every")
+        if not 0 < self.threshold < 1:
+            raise TypError(where, f"{name}.threshold", "a probability in (0, 1)", self.threshold)
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """ε_θ's UNet: widths per level (latents are halved ``len - 1`` times), time embedding."""
+
+    block_out_channels: tuple[int, ...]
+    layers_per_block: int
+    cross_attention_dim: int
+    attention_head_dim: int
+    norm_num_groups: int
+    time_embedding: Literal["sinusoidal", "fourier"]
+    #: the transformer blocks' self-attention over latent cells (off: cross-attention only, 2x faster)
+    self_attention: bool = True
+    #: x, y, range channels as input (the scan pattern depends on where a cell is)
+    coordinates: bool = False
+
+    def check(self, where: str, name: str) -> None:
+        if len(self.block_out_channels) < 2 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+            raise TypError(where, f"{name}.block_out_channels",
+                           f">= 2 positive widths divisible by norm_num_groups={self.norm_num_groups}",
+                           list(self.block_out_channels))
+        _positive_fields(self, where, name, "layers_per_block", "cross_attention_dim", "attention_head_dim",
+                         "norm_num_groups")
+
+
+@dataclass(frozen=True)
+class PostprocessConfig:
+    """TYP §4.1: thresholds low/high chosen from ``candidates`` on the validation split."""
+
+    noise_std: float
+    candidates: tuple[float, ...]
+
+    def check(self, where: str, name: str) -> None:
+        if self.noise_std < 0:
+            raise TypError(where, f"{name}.noise_std", "a standard deviation >= 0", self.noise_std)
+        if not self.candidates or any(not 0 < c < 1 for c in self.candidates):
+            raise TypError(where, f"{name}.candidates", "probabilities in (0, 1)", list(self.candidates))
+
+
+@dataclass(frozen=True)
+class Stage1Config:
+    """Stage ``stage1`` (TYP Eq. 4): P(x|y) as a latent diffusion model on the target's ego views."""
+
+    unet: UNetConfig
+    schedule: Schedule
+    train_timesteps: int
+    epochs: int
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    sampler: Sampler
+    sample_steps: int
+    eta: float
+    postprocess: PostprocessConfig
+    eval_views: int
+    input: str
+    vqvae: str
+    dataset: str
+    train_split: str
+    val_split: str
+    out: str
+    #: weights averaged with this decay sample the model (the training weights do not)
+    ema_decay: float = 0.999
+    warmup_steps: int = 100
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    #: models trained with seeds seed, seed + 1, ... (the first feeds later stages)
+    replicas: int = 1
+    #: what the UNet outputs (Eq. 4's minimiser either way): epsilon, sample (z_0) or v_prediction
+    prediction: Literal["epsilon", "sample", "v_prediction"] = "epsilon"
+    #: Min-SNR-γ loss weighting (0: the plain mean squared error of Eq. 4)
+    min_snr: float = 0.0
+    #: train on the ego views of the training split only (True), or on every agent's view, each
+    #: taken alone as one more single-agent scan of the target domain (no pairing is used)
+    ego_only: bool = True
+
+    def check(self, where: str, name: str) -> None:
+        self.unet.check(where, f"{name}.unet")
+        self.postprocess.check(where, f"{name}.postprocess")
+        _positive_fields(self, where, name, "train_timesteps", "epochs", "batch_size", "lr", "checkpoint_every",
+                         "eval_views", "warmup_steps", "replicas")
+        if not 0 <= self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
+        if not 1 <= self.sample_steps <= self.train_timesteps:
+            raise TypError(where, f"{name}.sample_steps", f"an integer in [1, train_timesteps={self.train_timesteps}]",
+                           self.sample_steps)
+        if self.eta < 0 or (self.eta and self.sampler != "ddim"):
+            raise TypError(where, f"{name}.eta", "0, or >= 0 with sampler ddim", self.eta)
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    """Stage ``adapt`` (TYP Eq. 8–10): E_src, G_src against a hinge discriminator on x^f."""
+
+    disc_width: int
+    epochs: int
+    batch_size: int
+    lr: float
+    lr_disc: float
+    gamma: float
+    seed: int
+    checkpoint_every: int
+    max_disc_loss: float
+    eval_views: int
+    input: str
+    vqvae: str
+    source_dataset: str
+    source_split: str
+    target_dataset: str
+    target_split: str
+    out: str
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "disc_width", "epochs", "batch_size", "lr", "lr_disc", "checkpoint_every",
+                         "max_disc_loss", "eval_views")
+        if self.gamma < 0:
+            raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0", self.gamma)
+
+
+@dataclass(frozen=True)
+class Stage2Config:
+    """Stage ``stage2`` (TYP Eq. 5–7): a T2I-Adapter on x^f_e' trained on source tuples, UNet frozen.
+
+    One adapter per stage-1 replica. ``resim`` also trains the re-simulation-conditioned
+    adapter (x^f_e' beside the re-simulated view's latent); ``one_stage`` also trains TYP
+    Table 5's one-stage model (UNet and adapter together from scratch on the source tuples,
+    for as many steps as stage 1 and stage 2 together); ``augment``: 1, 2 (mirror) or 8
+    (rotations and mirrors) symmetries per tuple; ``max_pairs``: source tuples used (0: all).
+    """
+
+    adapter_res_blocks: int
+    epochs: int
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    sim: str
+    voxels: str
+    vqvae: str
+    adapt: str
+    stage1: str
+    source_domain: str
+    source_split: str
+    out: str
+    warmup_steps: int = 100
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    ema_decay: float = 0.999
+    augment: Literal[1, 2, 8] = 2
+    max_pairs: int = 0
+    resim: bool = False
+    one_stage: bool = False
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "adapter_res_blocks", "epochs", "batch_size", "lr", "checkpoint_every",
+                         "warmup_steps")
+        if not 0 <= self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
+        if self.max_pairs < 0:
+            raise TypError(where, f"{name}.max_pairs", "a number of tuples >= 0 (0: all)", self.max_pairs)
+
+
+@dataclass(frozen=True)
+class SelftrainConfig:
+    """Stage ``selftrain`` (TYP §3.4): fine-tune the adapter on source tuples plus target data.
+
+    Switches (TYP Table 4): ``discriminator`` — source tuples encoded by the adapted E_src
+    (stage ``adapt``; off: by E_tgt, the adapter trained anew: "no adaptation");
+    ``self_training`` — pseudo references (x̂_r, x_e', y_r) sampled in target scenes;
+    ``dummy_ego`` — target ego views (x_r, y_r) with an empty ego, x_e = 0. ``ablation``
+    also trains every row of Table 4, whatever the switches say. ``generator``: which adapter
+    the written generator (``<out>/generator``) carries: ``typ`` (the switches' variant) or
+    ``typ_resim`` (the same recipe on the re-simulation-conditioned adapter; needs
+    ``stage2.resim``). The generator samples with ``sampler`` / ``sample_steps`` and multiplies the
+    adapter's residuals by ``adapter_scale`` (diffusers' ``adapter_conditioning_scale``; 1: as trained).
+    """
+
+    discriminator: bool
+    self_training: bool
+    dummy_ego: bool
+    ablation: bool
+    pseudo_references: int
+    min_distance: float
+    max_distance: float
+    epochs: int
+    batch_size: int
+    lr: float
+    seed: int
+    checkpoint_every: int
+    sampler: Sampler
+    sample_steps: int
+    sim: str
+    voxels: str
+    vqvae: str
+    adapt: str
+    stage1: str
+    stage2: str
+    source_domain: str
+    source_split: str
+    target_domain: str
+    target_split: str
+    out: str
+    warmup_steps: int = 50
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    ema_decay: float = 0.999
+    generator: Literal["typ", "typ_resim"] = "typ"
+    adapter_scale: float = 1.0
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "pseudo_references", "epochs", "batch_size", "lr", "checkpoint_every",
+                         "sample_steps", "max_distance", "warmup_steps", "adapter_scale")
+        if not 0 <= self.min_distance < self.max_distance:
+            raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
+                           self.min_distance)
+        if not 0 <= self.ema_decay < 1:
+            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
+
+
+@dataclass(frozen=True)
+class GenerateSet:
+    """One (dataset, split) of single-agent scenarios to turn collaborative.
+
+    references: ``vehicles`` — reference poses sampled from the ego's labelled vehicles
+    (TYP §4.5, the ColWaymo analogue); ``cavs`` — the scenario's own cooperating agents, each
+    replaced by a cloud generated from the ego's at its true pose (only their poses are read:
+    the oracle comparison of TYP Tables 1–2).
+    """
+
+    dataset: str
+    split: str
+    references: Literal["vehicles", "cavs"]
+
+
+@dataclass(frozen=True)
+class CastConfig:
+    """The scene a cast reference view is cast from (``generate.compose: cast``, :mod:`typ.castview`);
+    ``reports/generation_ablation.md`` measures each choice."""
+
+    #: labelled vehicles (y_r) as closed boxes, each edge scaled by this; 0: none
+    label_boxes: float = 0.9
+    #: the road surface lies under ``generated`` ground voxels only, every cell the ego did not
+    #: see (``unseen``) or ``everywhere`` (under the ego's surfels too)
+    road: Literal["generated", "unseen", "everywhere"] = "unseen"
+    #: drop generated voxels an ego ray crossed before its return: the ego saw them empty
+    carve: bool = True
+
+    def check(self, where: str, name: str) -> None:
+        if isinstance(self.label_boxes, bool) or not isinstance(self.label_boxes, (int, float)) \
+                or not 0.0 <= self.label_boxes <= 2.0:
+            raise TypError(where, f"{name}.label_boxes", "a scale in [0, 2] (0: no label boxes)", self.label_boxes)
+        if not isinstance(self.carve, bool):
+            raise TypError(where, f"{name}.carve", "true or false", self.carve)
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """Stage ``generate`` (TYP §4.5): reference views for single-agent frames, written as OPV2V agents."""
+
+    references_per_frame: int
+    #: roadside units per scenario (``vehicles`` sets): virtual sensors on observed ground, facing the ego
+    roadside_units: int
+    min_distance: float
+    max_distance: float
+    sampler: Sampler
+    sample_steps: int
+    seed: int
+    input: str
+    sets: tuple[GenerateSet, ...]
+    #: the folder selftrain writes the trained generators to (``<generator>/generator/seed_<s>``)
+    generator: str
+    out: str
+    workers: int
+    #: what a reference view is made of: ``generated`` — the generator's sample alone (TYP);
+    #: ``hybrid`` — the ego's cloud re-simulated from the reference pose in the BEV cells the ego
+    #: saw, the generator's sample elsewhere (the ``hybrid`` row of reports/generation_accuracy.md);
+    #: ``cast`` — one scene of both (the ego's surfels, the generated cells), cast once with the
+    #: reference LiDAR (:mod:`typ.castview`, shaped by ``cast``)
+    compose: Literal["generated", "hybrid", "cast"] = "generated"
+    cast: CastConfig = dataclasses.field(default_factory=CastConfig)
+
+    def check(self, where: str, name: str) -> None:
+        _positive_fields(self, where, name, "references_per_frame", "sample_steps", "max_distance", "workers")
+        self.cast.check(where, f"{name}.cast")
+        if self.roadside_units < 0:
+            raise TypError(where, f"{name}.roadside_units", "a count >= 0", self.roadside_units)
+        if not 0 <= self.min_distance < self.max_distance:
+            raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
+                           self.min_distance)
+        if not self.sets:
+            raise TypError(where, f"{name}.sets", "at least one {dataset, split, references}", [])
+        seen = set()
+        for i, s in enumerate(self.sets):
+            if (s.dataset, s.split) in seen:
+                raise TypError(where, f"{name}.sets[{i}]", "each (dataset, split) once", [s.dataset, s.split])
+            seen.add((s.dataset, s.split))
