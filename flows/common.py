@@ -136,20 +136,21 @@ def api_for_workers() -> Iterator[None]:
     """One Prefect API for this process and its Dask workers.
 
     Without ``PREFECT_API_URL`` Prefect starts a temporary server per process, so each Dask
-    worker process would start its own (seconds each, one sqlite file). Start the temporary
-    server here instead and hand its URL to the workers in the settings they receive. A
-    cluster on other machines needs a server they can reach: set ``PREFECT_API_URL``.
+    worker process would start its own (seconds each, one sqlite file). Start typ's local server
+    (:func:`flows.server.prefect_api`, the one ``typ run all`` and ``typ serve`` start, in
+    ``PREFECT_HOME``) here instead; its URL and auth reach the workers through the environment
+    they are spawned with and the settings they receive. A cluster on other machines needs a
+    server they can reach: set ``PREFECT_API_URL``.
     """
-    from prefect.settings import PREFECT_API_URL, temporary_settings
+    from prefect.settings import PREFECT_API_AUTH_STRING, PREFECT_API_URL, PREFECT_HOME, temporary_settings
+
+    from flows.server import prefect_api
 
     if PREFECT_API_URL.value():
         yield
         return
-    from prefect.server.api.server import SubprocessASGIServer
-
-    server = SubprocessASGIServer()  # the instance Prefect's own client would start
-    server.start()
-    with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
+    with prefect_api(Path(PREFECT_HOME.value())) as (url, server), \
+            temporary_settings(updates={PREFECT_API_URL: url, PREFECT_API_AUTH_STRING: server.auth}):
         yield
 
 
