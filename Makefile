@@ -58,10 +58,11 @@ run: $(STAMP)
 	$(BIN)/typ report
 
 # two pytest-xdist workers of one thread each, a file per worker at a time (module fixtures run
-# once): most long tests wait on servers and subprocesses, so two halve the wall time
+# once): most long tests wait on servers and subprocesses, so two halve the wall time. The 25
+# slowest tests are listed at the end, where the suite's time goes.
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
 
 # sampling needs the trained models of `make run` (artifacts/), pipeline its metrics (the
 # default data's skipping; its dvc runs are in a throwaway copy); voxelize and pcd_lzf need nothing.
