@@ -1,4 +1,4 @@
-"""Re-simulation baseline (issue 5, "Accuracy"): the ego cloud turned into a surface and ray-cast
+"""Re-simulation baseline: the ego cloud turned into a surface and ray-cast
 from the reference pose with the reference sensor's beams, the LiDARsim-style answer a user
 might pick instead of TYP's generator.
 
