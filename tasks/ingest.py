@@ -190,10 +190,15 @@ def _waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios, splits = [], {}
     for folder in ("", "training", "validation", "testing"):
         for path in sorted((root / folder).glob("*.tfrecord")):
-            scenarios.append(DatasetScenario("waymo", _safe(path.name.split(".")[0]), (path,)))
+            scenarios.append(_file_scenario("waymo", path))
             if folder:
                 splits.setdefault(folder, []).append(scenarios[-1].name)
     return scenarios, splits
+
+
+def _file_scenario(fmt: str, path: Path) -> DatasetScenario:
+    """The scenario of a format whose one file is one scenario (a Waymo segment), named by the file."""
+    return DatasetScenario(fmt, _safe(path.name.split(".")[0]), (path,))
 
 
 def _safe(name: str) -> str:
@@ -226,7 +231,7 @@ class Reader:
     one file of it. Its LiDAR is the preset of the same name (:mod:`typ.sensors.presets`).
 
     A new format is its reader (``typ/formats/<name>.py``) and an entry in :data:`READERS`, plus
-    its name in the config's ``SOURCE_FORMATS``."""
+    its name in the config's ``SINGLE_AGENT_FORMATS``."""
 
     find: Callable[[Path], tuple[list[DatasetScenario], dict[str, list[str]]]]
     frames: Callable[[DatasetScenario], Iterator[Scene]]
@@ -387,7 +392,7 @@ def read_frames(fmt: str, path: str | Path) -> list[DatasetScenario]:
     if not path.exists():
         raise TypError(path, "--input", f"an existing {fmt} file or folder", "not found")
     if READERS[fmt].one_file and path.is_file():
-        return [DatasetScenario(fmt, _safe(path.name.split(".")[0]), (path,))]
+        return [_file_scenario(fmt, path)]
     return list_dataset(fmt, path)[0]
 
 
