@@ -167,6 +167,7 @@ class LocalServer:
             yield server
         finally:
             if server is not None:
+                drain_prefect_services()
                 server.stop()
 
     @classmethod
@@ -249,6 +250,17 @@ def prefect_api(home: Path, *, host: str = "127.0.0.1", port: int | None = None,
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
+
+
+def drain_prefect_services(timeout: float = 10.0) -> None:
+    """Deliver what Prefect's background services of this process still queue (events, API logs)
+    while their server is up, and stop them; the next flow starts fresh ones against the API of
+    its time. A server stopped first leaves them retrying its closed port at exit (7 s an event,
+    each then lost), and a later flow's events go to the dead port too: the services keep the URL
+    they started with. Nothing to do where Prefect was never imported."""
+    for module, service in (("prefect.events.worker", "EventsWorker"), ("prefect.logging.handlers", "APILogWorker")):
+        if module in sys.modules:
+            getattr(sys.modules[module], service).drain_all(timeout=timeout, at_exit=False)
 
 
 class Terminated(SystemExit):
