@@ -10,6 +10,7 @@ module's output: ``tests/test_dvc_yaml.py`` fails when they differ.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import yaml
@@ -47,6 +48,14 @@ def module_file(name: str, root: Path = ROOT) -> Path | None:
 
 def imports_of(path: Path, root: Path = ROOT) -> set[str]:
     """Dotted names of every module ``path`` imports (``from a import b`` gives ``a`` and ``a.b``)."""
+    stat = path.stat()
+    return set(_imports(path, root, stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=None)
+def _imports(path: Path, root: Path, mtime_ns: int, size: int) -> frozenset[str]:
+    """:func:`imports_of`, parsed once per version of the file (every stage's closure reads the
+    same modules)."""
     tree = ast.parse(path.read_text())
     package = ".".join(path.relative_to(root).with_suffix("").parts[:-1])
     names: set[str] = set()
@@ -60,7 +69,7 @@ def imports_of(path: Path, root: Path = ROOT) -> set[str]:
                 base = ".".join([*parts, base] if base else parts)
             names.add(base)
             names.update(f"{base}.{a.name}" for a in node.names)
-    return names
+    return frozenset(names)
 
 
 def closure(start: str, root: Path = ROOT) -> set[Path]:
@@ -90,8 +99,18 @@ def code_deps(stage: str, root: Path = ROOT) -> list[str]:
 def profile_params(blocks, root: Path = ROOT) -> list[str]:
     """``<profile>.<block>`` for every profile of typ/profiles.yaml that sets ``block`` (a profile
     that extends another inherits the others, which the parent's keys already cover)."""
-    profiles = yaml.safe_load((root / "typ" / "profiles.yaml").read_text())
+    profiles = _profiles(root / "typ" / "profiles.yaml")
     return [f"{p}.{b}" for b in blocks for p, body in profiles.items() if b in body]
+
+
+def _profiles(path: Path) -> dict:
+    stat = path.stat()
+    return _read_profiles(path, stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_profiles(path: Path, mtime_ns: int, size: int) -> dict:
+    return yaml.safe_load(path.read_text())
 
 
 def _plot(p: registry.Plot) -> dict:

@@ -5,9 +5,9 @@ when the committed file differs), with each stage's code deps taken from its flo
 closure and its profile keys from ``typ/profiles.yaml``. Adding a stage is a task module, a
 flow ``flows/<name>.py``, a config block of the same name and one entry here.
 
-It sits with the flows, above tasks, because it reads the method lists tasks own (typ may not
-import tasks); no stage's flow imports it, so it is no stage's code dep and editing it re-runs
-nothing by itself.
+The method lists it draws come from the torch-free registries (:mod:`models.registry`, through
+:mod:`typ.config`), so building dvc.yaml imports no torch. No stage's flow imports this module,
+so it is no stage's code dep and editing it re-runs nothing by itself.
 """
 from __future__ import annotations
 
@@ -62,8 +62,10 @@ def _sweep(name: str, x: str, x_label: str, title: str, methods) -> Plot:
 def stages() -> tuple[Stage, ...]:
     """Every stage in the order ``dvc repro`` runs them (the method and column lists come from
     the modules that own them)."""
-    from tasks.evaluate import PLOTTED
+    from models.registry import GENERATION_METHODS
     from typ.config import FUSION_METHODS
+
+    plotted = [k for k, m in GENERATION_METHODS.items() if m.plotted]
 
     target = "data/voxels/dataset=target/split="
     cooperative = [m for m in FUSION_METHODS if m != "none"]
@@ -110,10 +112,10 @@ def stages() -> tuple[Stage, ...]:
               reports=("reports/generation_accuracy.md", "reports/gallery", "reports/plots", "reports/fusion.md"),
               images=("reports/fusion_pr.png", "reports/fusion_robustness.png"),
               plots=(
-                  Plot("iou_by_band", "range_m", {"reports/plots/iou_by_band.csv": list(PLOTTED)}, "linear",
+                  Plot("iou_by_band", "range_m", {"reports/plots/iou_by_band.csv": plotted}, "linear",
                        "range band centre (m from the sensor)", "IoU",
                        "IoU to the truth by range band, held-out target pairs"),
-                  Plot("row_profile", "elevation_deg", {"reports/plots/row_profile.csv": ["truth", *PLOTTED]},
+                  Plot("row_profile", "elevation_deg", {"reports/plots/row_profile.csv": ["truth", *plotted]},
                        "linear", "beam elevation (deg)", "share of azimuth bins with a return",
                        "range-image row occupancy of generated reference views, held-out target pairs"),
                   Plot("fusion_pr", "recall",

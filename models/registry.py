@@ -7,6 +7,8 @@ of these tables, and the code that runs them reads the same entries:
   them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
 - :data:`METHODS`: the collaborative fusion methods of the detection and SSC benchmarks; each
   entry names its module class in :mod:`models.fusion` (imported only when a module is built).
+- :data:`GENERATION_METHODS`: the reference-view methods and baselines ``evaluate`` scores
+  (:mod:`tasks.evaluate_generation` runs them), with the rows and curves the reports give them.
 
 The noise schedules' table is :data:`models.schedules.SCHEDULES` (numpy only).
 A new sampler is one entry here; a new fusion method is its module and one entry here (plus a
@@ -99,3 +101,29 @@ METHODS: dict[str, FusionMethod] = {m.name: m for m in (
 )}
 #: the method that trains the single-agent detector every warm start begins from
 SINGLE_AGENT = "late"
+
+
+@dataclass(frozen=True)
+class GenerationMethod:
+    """One way to produce a reference view that ``evaluate`` scores: ``label`` its row in the
+    generation report; ``plotted`` whether dvc.yaml's per-band and row-profile plots draw it."""
+
+    label: str
+    plotted: bool = False
+
+
+#: every generation method and baseline, in the report's order
+GENERATION_METHODS: dict[str, GenerationMethod] = {
+    "naive_copy": GenerationMethod("naive copy", plotted=True),
+    "resim": GenerationMethod("re-simulation", plotted=True),
+    "stage1_only": GenerationMethod("stage 1 only (boxes, no ego)", plotted=True),
+    "no_adaptation": GenerationMethod("stage 2 without adaptation"),
+    "disc": GenerationMethod("stage 2 (adapted source encoder)"),
+    "disc_st": GenerationMethod("+ self-training"),
+    "disc_st_dummy": GenerationMethod("TYP: + self-training + dummy ego", plotted=True),
+    "typ_resim": GenerationMethod("TYP + re-simulated conditioning", plotted=True),
+    "one_stage": GenerationMethod("one-stage (TYP Table 5 baseline)"),
+    "hybrid": GenerationMethod("hybrid: re-simulation where the ego saw, TYP elsewhere", plotted=True),
+    "cast": GenerationMethod("cast: the ego's surfels and TYP's cells in one scene, cast with the reference LiDAR",
+                             plotted=True),
+}

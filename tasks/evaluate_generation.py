@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models.registry import GENERATION_METHODS
 from tasks import genscore, realism, stage1, stage2
 from tasks.pairs import iter_pairs
 from tasks.pipeline import TYPPipeline
@@ -38,19 +39,7 @@ from typ.resim import coverage_mask, hybrid, hybrid_points
 from typ.voxel import Grid, voxelize
 
 #: method key -> row label, in the report's order
-METHODS = {
-    "naive_copy": "naive copy",
-    "resim": "re-simulation",
-    "stage1_only": "stage 1 only (boxes, no ego)",
-    "no_adaptation": "stage 2 without adaptation",
-    "disc": "stage 2 (adapted source encoder)",
-    "disc_st": "+ self-training",
-    "disc_st_dummy": "TYP: + self-training + dummy ego",
-    "typ_resim": "TYP + re-simulated conditioning",
-    "one_stage": "one-stage (TYP Table 5 baseline)",
-    "hybrid": "hybrid: re-simulation where the ego saw, TYP elsewhere",
-    "cast": "cast: the ego's surfels and TYP's cells in one scene, cast with the reference LiDAR",
-}
+METHODS = {k: m.label for k, m in GENERATION_METHODS.items()}
 
 
 @dataclass

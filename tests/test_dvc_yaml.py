@@ -16,6 +16,14 @@ def test_the_committed_dvc_yaml_is_what_the_registry_gives():
     assert (ROOT / "dvc.yaml").read_text() == dvcyaml.render(), "dvc.yaml drifted from flows/stages.py: run `typ dvc-yaml`"
 
 
+def test_building_dvc_yaml_imports_no_torch():
+    """`typ dvc-yaml` reads the registries, not the stages' code: seconds, no torch or diffusers."""
+    code = "import sys; from flows import dvcyaml; dvcyaml.render(); print(sorted(m for m in ('torch', 'diffusers', " \
+           "'prefect', 'mlflow') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 def test_every_config_stage_is_registered_in_order_with_its_flow_and_block():
     registered = stages.stages()
     assert tuple(s.name for s in registered) == Config.STAGES
