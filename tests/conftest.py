@@ -30,7 +30,7 @@ def _own_hash_cache(monkeypatch):
 
 #: the files that take minutes (the pipeline end to end, the stages run as processes): first
 LONG_FILES = ("test_pipeline_e2e.py", "test_real_target_e2e.py", "test_crash_safety.py", "test_real_data.py",
-              "test_dask.py", "test_deploy.py", "test_determinism.py", "test_server_lifecycle.py", "test_bad_inputs.py")
+              "test_dask.py", "test_deploy.py", "test_server_lifecycle.py", "test_bad_inputs.py")
 
 
 def pytest_configure(config):
