@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from typ.config import SINGLE_AGENT_FORMATS, Config
+from typ.config import COMPOSE, SINGLE_AGENT_FORMATS, Config
 from typ.errors import TypError
 from typ.hashcache import ENV as HASH_CACHE_ENV
 from typ.io import check_folder
@@ -237,6 +237,8 @@ def _cmd_generate(args) -> int:
 
     if args.format not in FORMATS:
         raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", args.format)
+    if args.compose is not None and args.compose not in COMPOSE:   # before seconds of imports
+        raise TypError("typ generate", "--compose", f"one of {list(COMPOSE)}", args.compose)
     root = Path(args.root)
     check_folder(args.out, where="typ generate", field="--out")
     _setup_env(root)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from tasks.pipeline import TYPPipeline
-from typ.config import CastConfig, GenerateConfig, GenerateSet, as_dict
+from typ.config import COMPOSE, CastConfig, GenerateConfig, GenerateSet, as_dict  # noqa: F401  (COMPOSE: re-exported)
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
@@ -36,8 +36,6 @@ SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_witho
                 "roadside_unit_without_ground", "reference_view_empty")
 #: the ego's own car, which the ego's labels never contain but a reference sees
 EGO_CAR_LWH = (4.5, 1.85, 1.5)
-#: ``generate.compose``: what a reference view is made of (:class:`typ.config.GenerateConfig`)
-COMPOSE = ("generated", "hybrid", "cast")
 
 
 @dataclass(frozen=True)

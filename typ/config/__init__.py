@@ -27,7 +27,7 @@ from typ.config.base import (DOMAINS, MAX_PARAMS_BYTES, PROFILES, PROFILES_FILE,
 from typ.config.data import (AZIMUTH_STEP_DEG, DomainSimulation, ElevationRule, GridConfig, MAX_AGENTS,
                              MAX_COMM_RANGE, MAX_DT, MAX_FRAMES, SINGLE_AGENT_FORMATS, SOURCE_FORMATS, SensorConfig,
                              SimulateConfig, SourceConfig, SourceFormat, VoxelizeConfig, check_simulation)  # noqa: F401
-from typ.config.generation import (AdaptConfig, AutoencoderConfig, CastConfig, GenerateConfig, GenerateSet,
+from typ.config.generation import (COMPOSE, AdaptConfig, AutoencoderConfig, CastConfig, GenerateConfig, GenerateSet,
                                    PostprocessConfig, SelftrainConfig, Stage1Config, Stage2Config, UNetConfig,
                                    VQVAEStageConfig)  # noqa: F401
 from typ.config.detection import (AugmentConfig, DetectorConfig, FUSION_METHODS, FusionConfig, RobustnessConfig,

@@ -322,6 +322,10 @@ class CastConfig:
             raise TypError(where, f"{name}.carve", "true or false", self.carve)
 
 
+#: ``generate.compose``: what a reference view is made of (:class:`GenerateConfig`)
+COMPOSE = ("generated", "hybrid", "cast")
+
+
 @dataclass(frozen=True)
 class GenerateConfig:
     """Stage ``generate`` (TYP §4.5): reference views for single-agent frames, written as OPV2V agents."""
@@ -345,7 +349,7 @@ class GenerateConfig:
     #: saw, the generator's sample elsewhere (the ``hybrid`` row of reports/generation_accuracy.md);
     #: ``cast`` — one scene of both (the ego's surfels, the generated cells), cast once with the
     #: reference LiDAR (:mod:`typ.castview`, shaped by ``cast``)
-    compose: Literal["generated", "hybrid", "cast"] = "generated"
+    compose: Literal[COMPOSE] = "generated"
     cast: CastConfig = dataclasses.field(default_factory=CastConfig)
 
     def check(self, where: str, name: str) -> None:
