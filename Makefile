@@ -13,6 +13,8 @@ export PREFECT_HOME := $(CURDIR)/.prefect
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export PREFECT_LOGGING_LEVEL ?= WARNING
 export DO_NOT_TRACK := 1
+# MLflow reads DO_NOT_TRACK only as "true"; without this it fetches a config and posts usage at exit
+export MLFLOW_DISABLE_TELEMETRY := true
 export DVC_NO_ANALYTICS := 1
 export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlruns.db
 export PATH := $(CURDIR)/$(BIN):$(PATH)

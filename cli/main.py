@@ -29,6 +29,9 @@ def _setup_env(root: Path) -> None:
     os.environ.setdefault("PREFECT_HOME", str((root / ".prefect").resolve()))
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
+    # MLflow takes DO_NOT_TRACK only as "true": without this, every stage process fetches a
+    # telemetry config from the internet and posts usage records at exit (a second, offline)
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     # the ephemeral API server's 20 s default start-up limit is missed on a loaded 2-core machine
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")

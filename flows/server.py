@@ -185,6 +185,7 @@ class LocalServer:
                                "server already there)", port)
         child_env = {**(env if env is not None else os.environ), "PREFECT_HOME": str(home),
                      "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
+                     "MLFLOW_DISABLE_TELEMETRY": "true",
                      # the server asks for it; its own services are clients of its API
                      "PREFECT_SERVER_API_AUTH_STRING": auth, "PREFECT_API_AUTH_STRING": auth}
         child_env.pop("PREFECT_API_URL", None)

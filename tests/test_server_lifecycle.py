@@ -347,3 +347,27 @@ def test_the_cli_hands_the_secret_to_the_servers_it_starts_only(tmp_path):
                        PREFECT_API_AUTH_STRING="theirs:secret")
     assert theirs == {"PREFECT_API_AUTH_STRING": "theirs:secret", "PREFECT_SERVER_API_AUTH_STRING": None}
     assert not (tmp_path / "elsewhere" / ".prefect").exists()
+
+
+#: the CLI's environment set-up, then what MLflow and Prefect decide about usage reporting
+TELEMETRY = """
+import json, sys
+from pathlib import Path
+from cli.main import _setup_env
+_setup_env(Path(sys.argv[1]))
+from mlflow.telemetry.utils import is_telemetry_disabled
+from prefect.settings import PREFECT_SERVER_ANALYTICS_ENABLED
+print(json.dumps([is_telemetry_disabled(), PREFECT_SERVER_ANALYTICS_ENABLED.value()]))
+"""
+
+
+def test_a_typ_command_reports_no_usage_to_mlflow_or_prefect(tmp_path):
+    """Outside a test or CI (which MLflow detects from PYTEST_CURRENT_TEST, CI, ...), MLflow reads
+    DO_NOT_TRACK only as "true": typ's DO_NOT_TRACK=1 alone left its telemetry on, a config fetched
+    from the internet and usage posted at exit of every stage process."""
+    quiet = ("PYTEST_CURRENT_TEST", "CI", "GITHUB_ACTIONS", "MLFLOW_DISABLE_TELEMETRY", "DO_NOT_TRACK",
+             "PREFECT_SERVER_ANALYTICS_ENABLED")
+    env = {k: v for k, v in os.environ.items() if k not in quiet}
+    out = subprocess.run([sys.executable, "-c", TELEMETRY, str(tmp_path)], env=env, cwd=REPO, capture_output=True,
+                         text=True, check=True, timeout=120).stdout
+    assert json.loads(out.strip().splitlines()[-1]) == [True, False]
