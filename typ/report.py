@@ -13,6 +13,7 @@ from pathlib import Path
 from typ.config import Config
 from typ.io import write_text
 from typ.metrics.intervals import Interval
+from typ.reporting import markdown_table
 
 #: ``evaluate``'s generation rows, as the generation report names them
 GENERATION_ROWS = {"generated": "what `generate` writes", "cast": "cast view (one scene, the reference LiDAR)",
@@ -55,13 +56,13 @@ def _commit(root: Path) -> str:
 
 
 def _stages(metrics: dict[str, dict]) -> list[str]:
-    lines = ["## Stages", "", "| stage | seconds of work it reports | metrics |", "|---|---|---|"]
+    rows = []
     for stage in Config.STAGES:
         m = metrics.get(stage)
         seconds = None if m is None else stage_seconds(m)
-        lines.append(f"| {stage} | {'not run' if m is None else '—' if seconds is None else f'{seconds:.0f}'} "
-                     f"| `metrics/{stage}.json` |")
-    return lines
+        rows.append([stage, "not run" if m is None else "—" if seconds is None else f"{seconds:.0f}",
+                     f"`metrics/{stage}.json`"])
+    return ["## Stages", "", markdown_table(["stage", "seconds of work it reports", "metrics"], rows)]
 
 
 def _generation(evaluate: dict, reports: Path) -> list[str]:
@@ -71,11 +72,9 @@ def _generation(evaluate: dict, reports: Path) -> list[str]:
     lines = ["## Generated reference views against the truth", "",
              f"{evaluate.get('pairs', '?')} held-out (ego, reference) pairs of {evaluate.get('scenes', '?')} scenes; "
              "full table by range band: [generation_accuracy.md](generation_accuracy.md).", "",
-             "| method | " + " | ".join(label for _, label in GENERATION_KEYS) + " |",
-             "|---|" + "---|" * len(GENERATION_KEYS)]
-    for key, name in GENERATION_ROWS.items():
-        if isinstance(gen.get(key), dict):
-            lines.append(f"| {name} | " + " | ".join(iv(gen[key].get(k)) for k, _ in GENERATION_KEYS) + " |")
+             markdown_table(["method", *(label for _, label in GENERATION_KEYS)],
+                            [[name, *(iv(gen[key].get(k)) for k, _ in GENERATION_KEYS)]
+                             for key, name in GENERATION_ROWS.items() if isinstance(gen.get(key), dict)])]
     adapt = evaluate.get("adaptation")
     if adapt and adapt.get("jsd_change") is not None:
         lines += ["", f"Adaptation (TYP Eq. 8–10): JSD of source views through the target decoder "
@@ -93,24 +92,24 @@ def _fusion(evaluate: dict) -> list[str]:
         return ["## Collaborative detection", "", "No detection scores (the fusion stage did not run)."]
     lines = ["## Collaborative detection, AP@0.5 overall (TYP Tables 1 and 3)", "",
              f"real_cav/test, {f.get('test_frames', '?')} frames of {f.get('test_scenarios', '?')} scenarios, "
-             f"{f.get('seeds', '?')} seed(s); full tables, ranges and robustness: [fusion.md](fusion.md).", "",
-             "| method | true cooperating views | generated ones |", "|---|---|---|"]
+             f"{f.get('seeds', '?')} seed(s); full tables, ranges and robustness: [fusion.md](fusion.md).", ""]
+    rows = []
     for method, row in sorted(f["table1"].items(), key=lambda kv: list(FUSION_NAMES).index(kv[0])):
         ap = {data: (cell or {}).get("ap50", {}).get("overall") for data, cell in row.items()}
-        lines.append(f"| {FUSION_NAMES.get(method, method)} | {iv(ap.get('oracle') or ap.get('ego'), 2)} | "
-                     f"{iv(ap.get('generated'), 2)} |")
+        rows.append([FUSION_NAMES.get(method, method), iv(ap.get("oracle") or ap.get("ego"), 2),
+                     iv(ap.get("generated"), 2)])
+    lines.append(markdown_table(["method", "true cooperating views", "generated ones"], rows))
     t3 = f.get("table3", {})
     columns = sorted({c for rows in t3.values() for cols in rows.values() for c in cols},
                      key=lambda c: (c == "all", int(c) if c.isdigit() else 0))
     if t3:
-        lines += ["", "Pre-trained, then fine-tuned on n real scenes with scratch's steps on the same scenes:", "",
-                  "| method | pre-training | " + " | ".join(f"{c} sc." for c in columns) + " |",
-                  "|---|---|" + "---|" * len(columns)]
+        table = []
         for method, rows in sorted(t3.items(), key=lambda kv: list(FUSION_NAMES).index(kv[0])):
             for i, source in enumerate(s for s in PRETRAIN_NAMES if s in rows):
-                cells = [iv((rows[source].get(c) or {}).get("ap50", {}).get("overall"), 2) for c in columns]
-                lines.append(f"| {FUSION_NAMES.get(method, method) if i == 0 else ''} | {PRETRAIN_NAMES[source]} | "
-                             + " | ".join(cells) + " |")
+                table.append([FUSION_NAMES.get(method, method) if i == 0 else "", PRETRAIN_NAMES[source],
+                              *(iv((rows[source].get(c) or {}).get("ap50", {}).get("overall"), 2) for c in columns)])
+        lines += ["", "Pre-trained, then fine-tuned on n real scenes with scratch's steps on the same scenes:", "",
+                  markdown_table(["method", "pre-training", *(f"{c} sc." for c in columns)], table)]
     return lines
 
 
@@ -120,12 +119,12 @@ def _ssc(ssc: dict | None) -> list[str]:
     tables = ssc["tables"]
     data = [d for d in ("perfect", "generated", "noisy") if d in tables]
     lines = ["## Collaborative semantic scene completion (V2VSSC Table I), IoU / mIoU", "",
-             "Full table, classes and robustness: [ssc.md](ssc.md).", "",
-             "| method | " + " | ".join(data) + " |", "|---|" + "---|" * len(data)]
-    for method in sorted({m for d in data for m in tables[d]}, key=list(FUSION_NAMES).index):
-        cells = [f"{iv(tables[d][method].get('iou'), 2)} / {iv(tables[d][method].get('miou'), 2)}"
-                 if method in tables[d] else "—" for d in data]
-        lines.append(f"| {FUSION_NAMES.get(method, method)} | " + " | ".join(cells) + " |")
+             "Full table, classes and robustness: [ssc.md](ssc.md).", ""]
+    rows = [[FUSION_NAMES.get(method, method),
+             *(f"{iv(tables[d][method].get('iou'), 2)} / {iv(tables[d][method].get('miou'), 2)}"
+               if method in tables[d] else "—" for d in data)]
+            for method in sorted({m for d in data for m in tables[d]}, key=list(FUSION_NAMES).index)]
+    lines.append(markdown_table(["method", *data], rows))
     return lines
 
 
@@ -134,12 +133,10 @@ def _ddpm(ddpm: dict | None, reports: Path) -> list[str]:
         return ["## LiDAR DDPM", "", "Not run."]
     lines = ["## Unconditional LiDAR generation (LiDAR-DDPM Table II), lower is better", "",
              "Every configuration and sampler: [ddpm.md](ddpm.md).", "",
-             "| representation | model | sampler | FRID | FPVD | JSD | s / sample |", "|---|---|---|---|---|---|---|"]
-    for row in ddpm["rows"].values():
-        sampler = row.get("sampler") or "(reference)"
-        seconds = row.get("seconds_per_sample") or 0.0
-        lines.append(f"| {row.get('representation')} | {row.get('config')} | {sampler} | {iv(row.get('frid'))} | "
-                     f"{iv(row.get('fpvd'))} | {iv(row.get('jsd'))} | {seconds:.3f} |")
+             markdown_table(["representation", "model", "sampler", "FRID", "FPVD", "JSD", "s / sample"],
+                            [[row.get("representation"), row.get("config"), row.get("sampler") or "(reference)",
+                              iv(row.get("frid")), iv(row.get("fpvd")), iv(row.get("jsd")),
+                              f"{row.get('seconds_per_sample') or 0.0:.3f}"] for row in ddpm["rows"].values()])]
     if (reports / "ddpm_pareto.png").is_file():
         lines += ["", "![samplers: quality against time](ddpm_pareto.png)"]
     return lines
