@@ -67,7 +67,7 @@ stamped with when and on which machine it was measured.
   paper gives no pair count for stage 2 and self-training, which are taken at N_train too.
   Not measured: the adaptation stage (its step is about the VQ-VAE x step plus two encoder passes).
 - fusion: inference time per frame of each fusion method (tasks/fusion_train.py build_model on
-  models/fusion.py + models/pointpillars.py, untrained weights) at the tiny and the paper
+  models/fusion/ + models/pointpillars.py, untrained weights) at the tiny and the paper
   profile's detector sizes, on one frame of --agents agents (the ego and cooperating agents
   up to 30 m away, random poses) with --points random points each (64-beam-like: ground
   rings and obstacle hits within 60 m). Per frame: tasks/fusion_score.py `predict` on fresh inputs

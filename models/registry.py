@@ -6,7 +6,8 @@ of these tables, and the code that runs them reads the same entries:
 - :data:`SAMPLERS`: the diffusion samplers, as diffusers schedulers (:mod:`models.samplers` builds
   them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
 - :data:`METHODS`: the collaborative fusion methods of the detection and SSC benchmarks; each
-  entry names its module class in :mod:`models.fusion` (imported only when a module is built).
+  entry names its module class in its own file ``models/fusion/<name>.py`` (imported only when a
+  module is built).
 - :data:`GENERATION_METHODS`: the reference-view methods and baselines ``evaluate`` scores
   (:mod:`tasks.evaluate_generation` runs them), with the rows and curves the reports give them.
 
@@ -79,8 +80,8 @@ class FusionMethod:
 
     @property
     def module(self) -> type:
-        """The module class (imports :mod:`models.fusion`, and so torch)."""
-        return getattr(importlib.import_module("models.fusion"), self.module_name)
+        """The module class, from the method's own file ``models/fusion/<name>.py`` (imports torch)."""
+        return getattr(importlib.import_module(f"models.fusion.{self.name}"), self.module_name)
 
     @property
     def intermediate_display(self) -> str:

@@ -4,7 +4,7 @@ V2VSSC keeps its detector (VoxelNet there, typ's PointPillars here) and swaps th
 for a semantic occupancy head. :func:`ssc_detector` builds the PointPillars of ``models/
 pointpillars.py`` on the SSC grid (pillars of 0.78125 m over x, y in [-50, 50) m, z in [-3, 5) m,
 so its BEV has the grid's 128 x 128 cells) and puts an :class:`OccupancyHead` where its anchor
-head was. The fusion modules of ``models/fusion.py`` that call ``detector.head`` (``NoFusion``,
+head was. The fusion modules of ``models/fusion`` that call ``detector.head`` (``NoFusion``,
 ``EarlyFusion``, ``LateFusion``, ``AttFuse``) then output ``{"occ": (B, K, X, Y, Z) logits}``
 unchanged; ``V2XViT`` builds its head with the detector head's :meth:`OccupancyHead.like` on its
 transformer's width and stride. Late fusion's map merge is :func:`merge_max_confidence` after :func:`warp_to_ego`.

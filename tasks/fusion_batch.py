@@ -1,6 +1,6 @@
 """Collaborative samples as network inputs: augmentation, pillars, batches and anchor targets.
 
-A batch is laid out as ``models/fusion.py`` wants it, for the ``inputs`` its method declares in
+A batch is laid out as ``models/fusion`` wants it, for the ``inputs`` its method declares in
 the registry (``models.fusion.METHODS``): ``ego`` — one slot per sample, the ego's cloud;
 ``merged`` — one slot per sample, every agent's cloud moved into the ego frame (early fusion);
 ``agents`` — L slots per sample, each agent's cloud in its own frame. Its targets follow the
@@ -87,7 +87,7 @@ def _collate(parts: Sequence[tuple[dict, int]]) -> dict[str, torch.Tensor]:
 
 @dataclass
 class Batch:
-    """One forward pass worth of samples, laid out as ``models/fusion.py`` wants them."""
+    """One forward pass worth of samples, laid out as ``models/fusion`` wants them."""
 
     method: str
     samples: list[FusionSample]

@@ -1,5 +1,5 @@
 """models/ssc.py: occupancy head layout, class weights, late fusion's warp and max-confidence merge,
-and the head riding on the fusion modules of models/fusion.py."""
+and the head riding on the fusion modules of models/fusion/."""
 from __future__ import annotations
 
 import numpy as np
