@@ -30,16 +30,15 @@ STTF does, instead of projecting points first; cells a warped map does not cover
 from __future__ import annotations
 
 from models.fusion.attfuse import AttFuse
-from models.fusion.base import (BYTES_PER_BOX, BYTES_PER_POINT, FusionModule, _check, _dense_map_bytes, _regroup,
-                                _to_ego, build, compressed, get_method, merge_agent_points, method_of, quantize,
-                                transform_boxes)
+from models.fusion.base import (BYTES_PER_BOX, BYTES_PER_POINT, FusionModule, build, compressed, get_method,
+                                merge_agent_points, method_of, quantize, transform_boxes)
 from models.fusion.early import EarlyFusion
 from models.fusion.late import LateFusion
 from models.fusion.none import NoFusion
-from models.fusion.v2xvit import HeteroAgentAttention, PyramidWindowAttention, V2XViT, WindowAttention, _TypedLinear
+from models.fusion.v2xvit import HeteroAgentAttention, PyramidWindowAttention, V2XViT, WindowAttention
 from models.registry import METHODS, SINGLE_AGENT, FusionMethod
 
 __all__ = ["AttFuse", "BYTES_PER_BOX", "BYTES_PER_POINT", "EarlyFusion", "FusionMethod", "FusionModule",
            "HeteroAgentAttention", "LateFusion", "METHODS", "NoFusion", "PyramidWindowAttention", "SINGLE_AGENT",
-           "V2XViT", "WindowAttention", "_TypedLinear", "_check", "_dense_map_bytes", "_regroup", "_to_ego", "build",
-           "compressed", "get_method", "merge_agent_points", "method_of", "quantize", "transform_boxes"]
+           "V2XViT", "WindowAttention", "build", "compressed", "get_method", "merge_agent_points", "method_of",
+           "quantize", "transform_boxes"]
