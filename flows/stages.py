@@ -62,10 +62,10 @@ def _sweep(name: str, x: str, x_label: str, title: str, methods) -> Plot:
 def stages() -> tuple[Stage, ...]:
     """Every stage in the order ``dvc repro`` runs them (the method and column lists come from
     the modules that own them)."""
-    from models.registry import GENERATION_METHODS
+    from models.registry import PLOTTED_GENERATION_METHODS
     from typ.config import FUSION_METHODS
 
-    plotted = [k for k, m in GENERATION_METHODS.items() if m.plotted]
+    plotted = list(PLOTTED_GENERATION_METHODS)
 
     target = "data/voxels/dataset=target/split="
     cooperative = [m for m in FUSION_METHODS if m != "none"]

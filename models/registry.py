@@ -128,3 +128,5 @@ GENERATION_METHODS: dict[str, GenerationMethod] = {
     "cast": GenerationMethod("cast: the ego's surfels and TYP's cells in one scene, cast with the reference LiDAR",
                              plotted=True),
 }
+#: the methods dvc.yaml's per-band and row-profile plots draw, in the report's order
+PLOTTED_GENERATION_METHODS = tuple(k for k, m in GENERATION_METHODS.items() if m.plotted)

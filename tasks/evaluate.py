@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.registry import GENERATION_METHODS
+from models.registry import PLOTTED_GENERATION_METHODS
 from tasks import evaluate_generation as gen
 from tasks import genscore, realism, selftrain
 from typ.io import write_text
@@ -35,7 +35,7 @@ LOG = logging.getLogger(__name__)
 
 GENERATION_REPORT = Path("reports") / "generation_accuracy.md"
 #: the methods whose curves dvc.yaml's plots declare (a method that did not run is an empty column)
-PLOTTED = tuple(k for k, m in GENERATION_METHODS.items() if m.plotted)
+PLOTTED = PLOTTED_GENERATION_METHODS
 GALLERY = Path("reports") / "gallery"
 
 ACCURACY_COLUMNS = [("iou", "IoU"), ("iou_0-20", "IoU 0–20 m"), ("iou_20-40", "IoU 20–40 m"),
