@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from tasks.pipeline import TYPPipeline
-from typ.config import COMPOSE, CastConfig, GenerateConfig, GenerateSet, as_dict  # noqa: F401  (COMPOSE: re-exported)
+from typ.config import COMPOSE, CastConfig, GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
