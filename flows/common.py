@@ -186,6 +186,38 @@ def plain_task(fn: Callable, name: str):
     return task(fn, name=name, cache_policy=NO_CACHE)
 
 
+class PrefectTrainings:
+    """:class:`tasks.training.Trainings` with each training a stage reports as one Prefect task
+    run named after it: trained here, the task runs it; trained by a process pool, the task starts
+    with it and ends with it, in its state. As a context manager it waits, on the way out, until
+    each of those has its final state."""
+
+    def __init__(self) -> None:
+        self.pending: list = []
+
+    def __enter__(self) -> "PrefectTrainings":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.wait()
+
+    def run(self, name: str, fn: Callable[[], object]) -> object:
+        return self._task(fn, name)()
+
+    def started(self, name: str, future) -> None:
+        self.pending.append(self._task(future.result, name).submit())
+
+    @staticmethod
+    def _task(fn: Callable, name: str):
+        return plain_task(fn, name).with_options(task_run_name=name)   # the run is called as the training
+
+    def wait(self) -> None:
+        """Until every task run of a pool's training has its final state."""
+        from prefect.futures import wait
+
+        wait(self.pending)
+
+
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
     """``metrics/<stage>.json`` for DVC; under torchrun only rank 0 writes it."""
     path = root / "metrics" / f"{stage}.json"

@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 from prefect import flow
 
-from flows.common import Timer, numeric_leaves, plain_task, write_metrics
+from flows.common import PrefectTrainings, Timer, numeric_leaves, plain_task, write_metrics
 from tasks import ddpm as stage
 from tasks import ddpm_report
 from tasks.lidar_features import train_feature_nets
@@ -38,8 +38,9 @@ def ddpm_flow(params: str = "params.yaml", root: str = ".") -> dict:
                 block.features, block.seed, reps["range"].layout, train, test, out=out, log_fn=run.metrics)
             run.log_model("ddpm-frid-net", nets.range_net, torch.zeros(1, 1, *reps["range"].layout.shape))
             run.log_model("ddpm-fpvd-net", nets.voxel_net, torch.zeros(1, nets.grid.shape[2], *nets.grid.shape[:2]))
-            rows, trained, examples = plain_task(stage.table, "table")(block, reps, train, test, nets, out=out,
-                                                                       log_fn=run.metrics)
+            with PrefectTrainings() as trainings:
+                rows, trained, examples = stage.table(block, reps, train, test, nets, out=out, log_fn=run.metrics,
+                                                      trainings=trainings)
             for tm in trained.values():
                 c = tm.model.config
                 run.log_model(f"ddpm-{tm.name}", tm.model, {"x_t": torch.zeros(1, c["channels"], c["height"], c["width"]),

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from prefect import flow
 
-from flows.common import Timer, finish_stage, plain_task
+from flows.common import PrefectTrainings, Timer, finish_stage
 from tasks import fusion as stage
 from tasks.fusion_serve import ServedDetector
 from typ.config import load_config
@@ -25,7 +25,8 @@ def fusion_flow(params: str = "params.yaml", root: str = ".") -> dict:
     with stage_run(STAGE, cfg, root=root_path) as run:
         with Timer() as timer:
             bench = stage.Benchmark(block, stage.Roots.from_config(block, root_path), out, log_fn=run.metrics)
-            plain_task(bench.train_all, "train")()
+            with PrefectTrainings() as trainings:
+                bench.train_all(trainings)
         metrics = stage.training_summary(bench, timer.seconds)
         write_json(out / stage.TRAINING_JSON, metrics)
         write_json(out / "curves.json", bench.curves())

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from prefect import flow
 
-from flows.common import finish_stage, plain_task
+from flows.common import PrefectTrainings, finish_stage
 from tasks import selftrain as stage
 from typ.config import load_config
 from typ.tracking import stage_run
@@ -19,7 +19,8 @@ def selftrain_flow(params: str = "params.yaml", root: str = ".") -> dict:
     root_path = Path(root)
     cfg = load_config(root_path / params)
     with stage_run(STAGE, cfg, root=root_path) as run:
-        metrics = plain_task(stage.run, "selftrain")(cfg, root_path, log_fn=run.metrics, log_model=run.log_model)
+        with PrefectTrainings() as trainings:
+            metrics = stage.run(cfg, root_path, log_fn=run.metrics, log_model=run.log_model, trainings=trainings)
         finish_stage(STAGE, run, metrics, root_path,
                      artifacts=[stage.generator_dir(root_path / cfg.selftrain.out, cfg.stage1.seed) / "pipeline.json"])
     return metrics

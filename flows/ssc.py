@@ -6,7 +6,7 @@ from pathlib import Path
 
 from prefect import flow
 
-from flows.common import Timer, finish_stage, plain_task
+from flows.common import PrefectTrainings, Timer, finish_stage
 from tasks import ssc as stage
 from tasks import ssc_report
 from typ.config import load_config
@@ -24,7 +24,8 @@ def ssc_flow(params: str = "params.yaml", root: str = ".") -> dict:
     out = root_path / block.out
     with stage_run(STAGE, cfg, root=root_path) as run:
         with Timer() as timer:
-            results = plain_task(stage.run, "train-and-score")(block, root_path, log_fn=run.metrics)
+            with PrefectTrainings() as trainings:
+                results = stage.run(block, root_path, log_fn=run.metrics, trainings=trainings)
             paths = ssc_report.write_report(results, block, root_path / block.reports, results["gallery"])
         metrics = stage.metrics_of(results, timer.seconds)
         write_json(out / "results.json", metrics)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from prefect import flow
 
-from flows.common import finish_stage, plain_task
+from flows.common import PrefectTrainings, finish_stage
 from tasks import stage2 as stage
 from typ.config import load_config
 from typ.tracking import stage_run
@@ -18,6 +18,7 @@ def stage2_flow(params: str = "params.yaml", root: str = ".") -> dict:
     root_path = Path(root)
     cfg = load_config(root_path / params)
     with stage_run(STAGE, cfg, root=root_path) as run:
-        metrics = plain_task(stage.run, "train-adapters")(cfg, root_path, log_fn=run.metrics, log_model=run.log_model)
+        with PrefectTrainings() as trainings:
+            metrics = stage.run(cfg, root_path, log_fn=run.metrics, log_model=run.log_model, trainings=trainings)
         finish_stage(STAGE, run, metrics, root_path)
     return metrics

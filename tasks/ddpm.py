@@ -41,8 +41,8 @@ from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_if_key, save_module
 from tasks.ddpm_data import (BevRepresentation, RangeRepresentation, Representation, Scan, data_key,  # noqa: F401
                              load_scans, pixel_set, representations, unlabelled)
-from tasks.training import (batch_rng, grad_norm, noised_batch, prediction_target, run_checkpoint_dir, run_loop,
-                            seed_everything)
+from tasks.training import (Trainings, batch_rng, grad_norm, noised_batch, prediction_target, run_checkpoint_dir,
+                            run_loop, seed_everything)
 from typ import distributed
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
 from typ.io import atomic_path, code_digest, hash_obj
@@ -243,9 +243,11 @@ def _row(route: str, rep: str, label: str, **fields) -> dict:
 
 
 def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], test: list[Scan], nets, *,
-          out: Path, log_fn: Callable[[dict, int], None]) -> tuple[list[dict], dict[str, TrainedModel], dict]:
-    """Train every model the configurations need, sample every (configuration, sampler) row for
-    every seed, and score it against the held-out scans passed through the same representation.
+          out: Path, log_fn: Callable[[dict, int], None],
+          trainings: Trainings = Trainings()) -> tuple[list[dict], dict[str, TrainedModel], dict]:
+    """Train every model the configurations need (each reported to ``trainings`` as
+    ``train-<model name>``), sample every (configuration, sampler) row for every seed, and score it
+    against the held-out scans passed through the same representation.
 
     Per representation two reference rows come first: ``full noise`` (N(0, I) pixels decoded,
     the paper's ceiling) and ``real train views`` (training scans through the representation:
@@ -277,8 +279,8 @@ def table(cfg: DdpmConfig, reps: dict[str, Representation], train: list[Scan], t
         for seed in seeds_of(cfg, run):
             name = model_name(run, seed, cfg.prediction)
             if name not in trained:
-                trained[name] = train_model(cfg, run, rep, seed, training[run.representation], data, out=out,
-                                            log_fn=log_fn)
+                trained[name] = trainings.run(f"train-{name}", lambda: train_model(
+                    cfg, run, rep, seed, training[run.representation], data, out=out, log_fn=log_fn))
             made = generate(trained[name], sampler, steps, cfg.eval_samples, sampling_seed(cfg, seed), out=out)
             stats.append(set_stats(clouds(rep, made.pixels), nets))
             seconds.append(made.seconds_per_sample)

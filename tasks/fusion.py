@@ -46,7 +46,7 @@ from models.registry import METHODS, SINGLE_AGENT
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
-from tasks.training import one_thread
+from tasks.training import Trainings, one_thread
 from typ import distributed
 from typ.config import FusionConfig
 from typ.errors import TypError
@@ -214,16 +214,18 @@ class Benchmark:
             self._inputs[data] = read_inputs(self.cfg, self.roots, data)
         return self._inputs[data]
 
-    def train_all(self) -> dict[str, list[Trained]]:
+    def train_all(self, trainings: Trainings = Trainings()) -> dict[str, list[Trained]]:
         """Every run of the plan, every seed, in dependency order, on :func:`training_processes`
-        processes (module doc); weights under ``<out>/models/``."""
+        processes (module doc); weights under ``<out>/models/``. Each (run, seed) is reported to
+        ``trainings`` as ``train-<run>-seed<k>``."""
         jobs = [Job(run, seed, self.out) for run in self.plan.runs.values() if run.name not in self.networks
                 for seed in self.cfg.training_seeds]
         workers = training_processes(self.cfg)
         if workers == 1:
-            seconds = [train_job(self.cfg, job, self.inputs(job.run.data)) for job in jobs]
+            seconds = [trainings.run(job.name, lambda: train_job(self.cfg, job, self.inputs(job.run.data)))
+                       for job in jobs]
         else:
-            seconds = _train_in_pool(self.cfg, self.roots, jobs, workers)
+            seconds = _train_in_pool(self.cfg, self.roots, jobs, workers, trainings)
         for job, s in zip(jobs, seconds):
             self.seconds[job.run.name] = round(self.seconds.get(job.run.name, 0.0) + s, 3)
         for run in self.plan.runs.values():
@@ -301,6 +303,11 @@ class Job:
         return model_folder(self.out, self.run.name, self.seed)
 
     @property
+    def name(self) -> str:
+        """What the job is called where it is reported (:class:`tasks.training.Trainings`)."""
+        return f"train-{self.run.name}-seed{self.seed}"
+
+    @property
     def init(self) -> Path | None:
         return None if self.run.init is None else model_folder(self.out, self.run.init, self.seed)
 
@@ -349,9 +356,10 @@ def _worker_job(cfg: FusionConfig, roots: Roots, job: Job) -> float:
     return train_job(cfg, job, _WORKER_INPUTS[job.run.data])
 
 
-def _train_in_pool(cfg: FusionConfig, roots: Roots, jobs: list[Job], workers: int) -> list[float]:
+def _train_in_pool(cfg: FusionConfig, roots: Roots, jobs: list[Job], workers: int,
+                   trainings: Trainings = Trainings()) -> list[float]:
     """``jobs`` on ``workers`` spawned processes, each started when the networks it starts from
-    are saved; their seconds, in the order of ``jobs``."""
+    are saved (and reported to ``trainings``); their seconds, in the order of ``jobs``."""
     waiting = list(range(len(jobs)))
     folders = {job.folder for job in jobs}
     done: set[Path] = set()
@@ -363,7 +371,9 @@ def _train_in_pool(cfg: FusionConfig, roots: Roots, jobs: list[Job], workers: in
             for i in [i for i in waiting
                       if all(d is None or d not in folders or d in done for d in (jobs[i].init, jobs[i].warm))]:
                 waiting.remove(i)
-                running[pool.submit(_worker_job, cfg, roots, jobs[i])] = i
+                future = pool.submit(_worker_job, cfg, roots, jobs[i])
+                trainings.started(jobs[i].name, future)
+                running[future] = i
             if not running:
                 raise TypError("fusion", "plan", "runs whose starting networks are trained first",
                                [jobs[i].run.name for i in waiting])

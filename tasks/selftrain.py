@@ -32,6 +32,7 @@ from tasks import generate, stage1, stage2
 from tasks.pipeline import PointStats, TYPPipeline, point_statistics
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
+from tasks.training import Trainings
 from typ.config import SelftrainConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor
@@ -265,8 +266,10 @@ def _dummy_example(data: Inputs, encoders: Encoders, ldm, v: Variant):
     return stage2.encode(data.dummy, encoders.target_x, encoders.y, ldm, conditions=v.conditions).ego[:2]
 
 
-def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None) -> dict:
-    """Every variant for every stage-1 replica, and the generator pipeline for each replica."""
+def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
+        trainings: Trainings = Trainings()) -> dict:
+    """Every variant for every stage-1 replica (each reported to ``trainings`` as
+    ``train-<variant>-seed<k>``), and the generator pipeline for each replica."""
     from tasks.vqvae import load_model as load_vqvae
 
     block = cfg.selftrain
@@ -287,7 +290,8 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None)
         stage2_dir = stage1.replica_dir(root / block.stage2, seed)
         for v in variants:
             base = stage2.load_adapter(stage2_dir / stage2.ADAPTERS[v.conditions]) if v.discriminator else None
-            adapter, example = enhance(v, cfg, data, encoders, base_pipe, base, seed=seed, out=out, log_fn=log_fn)
+            adapter, example = trainings.run(f"train-{v.name}-seed{seed}", lambda: enhance(
+                v, cfg, data, encoders, base_pipe, base, seed=seed, out=out, log_fn=log_fn))
             stage2.save_adapter(adapter, stage1.replica_dir(out, seed) / v.name)
             if v == chosen:
                 base_pipe.with_adapter(adapter).save_pretrained(generator_dir(out, seed))

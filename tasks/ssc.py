@@ -49,6 +49,7 @@ from models.ssc import class_weights, merge_max_confidence, warp_to_ego
 from tasks.fusion_data import FusionDataset, FusionSample, unavailable
 from tasks.ssc_data import FIGURES, NETWORK, N_CLASSES, ego_map, ssc_dataset
 from tasks.ssc_train import SscNetworks, _inputs, generated_root, train_arms, train_seed, training_set
+from tasks.training import Trainings
 from typ.config import SscConfig
 from typ.errors import TypError
 from typ.metrics.intervals import bootstrap
@@ -167,10 +168,10 @@ def ratio_interval(num: np.ndarray, den: np.ndarray, figure: str, *, n_boot: int
 
 
 def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
-        log_fn: Callable[[dict, int | None], None] | None = None) -> dict:
-    """Train every seed's networks, score Table I (perfect and noisy), the networks trained on
-    generated cooperators against the oracle ones, and the robustness sweeps; returns the results
-    the report and the metrics are made of."""
+        log_fn: Callable[[dict, int | None], None] | None = None, trainings: Trainings = Trainings()) -> dict:
+    """Train every seed's networks (each (arm, seed) reported to ``trainings``), score Table I
+    (perfect and noisy), the networks trained on generated cooperators against the oracle ones,
+    and the robustness sweeps; returns the results the report and the metrics are made of."""
     sim = Path(root) / block.sim / block.domain
     out = Path(root) / block.out
     test_ds = ssc_dataset(sim / block.test_split, comm_range=block.comm_range)
@@ -180,7 +181,7 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
     # why the generated arm cannot run (None: it runs), asked once for training and for scoring
     gen_unavailable = unavailable(generated_root(block, root)) if "generated" in block.data else None
     generated = "generated" in block.data and gen_unavailable is None
-    train_arms(block, root, ["oracle", "generated"] if generated else ["oracle"], weights, log)
+    train_arms(block, root, ["oracle", "generated"] if generated else ["oracle"], weights, log, trainings)
     noisy_ds = test_ds.with_options(position_std=block.noisy.position_std,
                                     heading_std_deg=block.noisy.heading_std_deg,
                                     delay_frames=block.noisy.delay_ms // 100, seed=block.seed)

@@ -19,8 +19,8 @@ from models.ssc import ssc_detector
 from tasks.artifacts import load_if_key, save_module
 from tasks.fusion_data import FusionSample
 from tasks.ssc_data import IGNORE, NETWORK, STAGE, TrainingSet, model_kwargs, ssc_dataset
-from tasks.training import (drop_checkpoints, learning_rate, one_thread, run_checkpoint_dir, run_loop, seed_everything,
-                            set_learning_rate)
+from tasks.training import (Trainings, drop_checkpoints, learning_rate, one_thread, run_checkpoint_dir, run_loop,
+                            seed_everything, set_learning_rate)
 from typ import distributed
 from typ.config import SscConfig
 from typ.errors import TypError
@@ -226,20 +226,26 @@ def _train_arm(block: SscConfig, root: Path, data_name: str, seed: int, weights:
 
 
 def train_arms(block: SscConfig, root: Path, arms: Sequence[str], weights: np.ndarray,
-               log: Callable[[str], None] = print) -> None:
+               log: Callable[[str], None] = print, trainings: Trainings = Trainings()) -> None:
     """Train (or find by key) every network of each arm in ``arms`` and each seed, the (arm, seed)
-    pairs on spawned one-thread processes, as many at once as torch has threads (module doc);
-    :func:`train_seed` then loads them. With one thread or one pair nothing is spawned: train_seed
-    trains them itself, on one thread as well."""
+    pairs on spawned one-thread processes, as many at once as torch has threads (module doc), each
+    reported to ``trainings`` as ``train-<arm>-seed<k>``; :func:`train_seed` then loads them. With
+    one thread or one pair nothing is spawned: they train here, on one thread as well."""
     import concurrent.futures
     import multiprocessing
 
     jobs = [(arm, seed) for seed in block.training_seeds for arm in arms]
     workers = min(len(jobs), torch.get_num_threads())
     if workers < 2:
+        for arm, seed in jobs:
+            trainings.run(f"train-{arm}-seed{seed}", lambda: train_seed(
+                block, training_set(block, root, arm), weights, seed, Path(root) / block.out, log, data_name=arm))
         return
     ctx = multiprocessing.get_context("spawn")    # no fork of a process whose OpenMP pool runs
     with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-        futures = [pool.submit(_train_arm, block, Path(root), arm, seed, weights) for arm, seed in jobs]
+        futures = []
+        for arm, seed in jobs:
+            futures.append(pool.submit(_train_arm, block, Path(root), arm, seed, weights))
+            trainings.started(f"train-{arm}-seed{seed}", futures[-1])
         for future in futures:                    # a worker's error is raised here
             log(f"ssc: the networks of {future.result()} are trained")

@@ -34,7 +34,7 @@ from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_module, save_module
 from tasks.pairs import Pair
 from tasks.stage1 import train_views
-from tasks.training import (EMA, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
+from tasks.training import (EMA, Trainings, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
                             run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
 from tasks.voxel_data import apply_dihedral
 from typ import distributed
@@ -310,8 +310,10 @@ def source_tuples(cfg, root: Path, *, resim: bool) -> Tuples:
     return collect(pairs, grid=grid, resim_spec=spec, max_pairs=block.max_pairs or None)
 
 
-def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None) -> dict:
-    """The stage: adapters for every stage-1 replica (and the one-stage model when asked)."""
+def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
+        trainings: Trainings = Trainings()) -> dict:
+    """The stage: adapters for every stage-1 replica (and the one-stage model when asked), each
+    training reported to ``trainings`` as ``train-<adapter>-seed<k>`` / ``train-one-stage-seed<k>``."""
     from tasks import stage1
     from tasks.vqvae import load_model as load_vqvae
 
@@ -328,14 +330,16 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None)
             data = encode(tuples, source_x, y_encoder, ldm, augment=block.augment, conditions=conditions)
             adapter = build_adapter(ldm, res_blocks=block.adapter_res_blocks, seed=seed, conditions=conditions)
             name = ADAPTERS[conditions]
-            fitted = fit_adapter(adapter, ldm, saved["schedule"], saved["train_timesteps"], data,
-                                 name=f"stage2.seed_{seed}.{name}", settings=settings_of(block, seed, cfg.stage1.min_snr),
-                                 views=len(tuples), key_extra=as_dict(block), out=out, log_fn=log_fn)
+            fitted = trainings.run(f"train-{name}-seed{seed}", lambda: fit_adapter(
+                adapter, ldm, saved["schedule"], saved["train_timesteps"], data, name=f"stage2.seed_{seed}.{name}",
+                settings=settings_of(block, seed, cfg.stage1.min_snr), views=len(tuples), key_extra=as_dict(block),
+                out=out, log_fn=log_fn))
             save_adapter(fitted, stage1.replica_dir(out, seed) / name)
             if log_model is not None and seed == cfg.stage1.seed and conditions == 1:
                 log_model("stage2-adapter", fitted, data.ego[:2])  # F_AD(x^f_e') -> one map per UNet level
         if block.one_stage:
-            fit_one_stage(cfg, root, tuples, source_x, y_encoder, seed=seed, out=out, log_fn=log_fn)
+            trainings.run(f"train-one-stage-seed{seed}", lambda: fit_one_stage(
+                cfg, root, tuples, source_x, y_encoder, seed=seed, out=out, log_fn=log_fn))
     return metrics
 
 

@@ -306,6 +306,21 @@ def steps_for(epochs: int, n_items: int, batch_size: int) -> int:
     return max(1, epochs * math.ceil(n_items / batch_size))
 
 
+class Trainings:
+    """Where a stage reports each network it trains, one call per (network, seed).
+
+    :meth:`run` trains one in this process; :meth:`started` is told of one that a process pool
+    trains (``future`` resolves to its result, or raises its error). This base class only runs
+    them; the flows pass :class:`flows.common.PrefectTrainings`, which makes each one a Prefect
+    task run named after it, so the UI shows progress and failures per network."""
+
+    def run(self, name: str, fn: Callable[[], object]) -> object:
+        return fn()
+
+    def started(self, name: str, future) -> None:
+        """``future``: a :class:`concurrent.futures.Future` of the training called ``name``."""
+
+
 @contextlib.contextmanager
 def one_thread():
     """Every training on the CPU runs on one intra-op thread, so that its bytes do not depend on

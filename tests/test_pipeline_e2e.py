@@ -356,6 +356,71 @@ def test_fusion_benchmark_trains_every_method_on_oracle_and_generated_cavs(proje
     assert (models / "oracle-v2xvit" / "seed0" / "config.json").is_file()
 
 
+def _task_runs(proj: Path, flow: str) -> dict[str, set[str]]:
+    """Task run name -> its states, over every run of flow ``flow``, from the Prefect database."""
+    import contextlib
+    import sqlite3
+
+    found: dict[str, set[str]] = {}
+    with contextlib.closing(sqlite3.connect(proj / ".prefect" / "prefect.db")) as db:
+        for name, state in db.execute("SELECT t.name, t.state_type FROM task_run t JOIN flow_run r ON "
+                                      "t.flow_run_id = r.id JOIN flow f ON r.flow_id = f.id WHERE f.name = ?", (flow,)):
+            found.setdefault(name, set()).add(state)
+    return found
+
+
+def test_each_training_is_one_prefect_task_run(project):
+    """The training flows report every network they train as its own task run, named after it (the
+    UI's progress and failures per network), not one opaque task for the stage."""
+    proj, _, _ = project
+    metrics = {stage: json.loads((proj / "metrics" / f"{stage}.json").read_text())
+               for stage in ("fusion", "selftrain", "ddpm")}
+    expected = {
+        "vqvae": {"train-x-seed0", "train-y-seed0"},
+        "stage1": {"train-ldm-seed0"},
+        "adapt": {"train-source_vq-seed0"},
+        "fusion": {f"train-{run}-seed0" for run in metrics["fusion"]["seconds_per_run"]},
+        "ssc": {"train-oracle-seed0", "train-generated-seed0"},
+        "stage2": {"train-adapter-seed0", "train-adapter_resim-seed0", "train-one-stage-seed0"},
+        "selftrain": {f"train-{variant}-seed0" for variant in metrics["selftrain"]["variants"]},
+        "ddpm": {f"train-{name}" for name in metrics["ddpm"]["models"]},
+    }
+    assert len(expected["fusion"]) > 10 and len(expected["selftrain"]) > 3 and len(expected["ddpm"]) == 2
+    for flow, names in expected.items():
+        found = {name: states for name, states in _task_runs(proj, flow).items() if name.startswith("train-")}
+        assert set(found) == names, (flow, set(found) ^ names)
+        assert all(states == {"COMPLETED"} for states in found.values()), (flow, found)
+
+
+PROBE = """
+import concurrent.futures
+from prefect import flow
+from flows.common import PrefectTrainings
+
+def diverged():
+    raise ValueError("loss is NaN")
+
+@flow(name="trainings-probe")
+def probe():
+    with concurrent.futures.ThreadPoolExecutor(2) as pool, PrefectTrainings() as trainings:
+        trainings.started("train-pooled-seed0", pool.submit(lambda: 1.5))
+        trainings.started("train-diverged-seed0", pool.submit(diverged))
+        assert trainings.run("train-here-seed0", lambda: 2.0) == 2.0
+
+probe()
+"""
+
+
+def test_a_pool_training_is_a_task_run_that_ends_in_its_state(project):
+    """Trainings on a process pool (the fusion and ssc stages on 2+ threads): each is a task run
+    that completes with its training, or fails with it."""
+    proj, env, _ = project
+    _run([str(VENV_BIN / "typ"), "with-server", sys.executable, "-c", PROBE], proj, env)
+    assert _task_runs(proj, "trainings-probe") == {"train-pooled-seed0": {"COMPLETED"},
+                                                   "train-diverged-seed0": {"FAILED"},
+                                                   "train-here-seed0": {"COMPLETED"}}
+
+
 KITTI = REPO.parent / "shared" / "data" / "kitti_object_vis"
 
 
