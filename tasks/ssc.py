@@ -174,7 +174,7 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
     and the robustness sweeps; returns the results the report and the metrics are made of."""
     sim = Path(root) / block.sim / block.domain
     out = Path(root) / block.out
-    test_ds = ssc_dataset(sim / block.test_split, comm_range=block.comm_range)
+    test_ds = ssc_dataset(sim / block.test_split, comm_range=block.comm_range, max_scenarios=block.test_scenarios)
     data = training_set(block, root, "oracle")
     weights = class_weights(data.class_counts(), eps=block.class_weight_eps)
     skipped: dict[str, str] = {}

@@ -264,7 +264,9 @@ class SscConfig:
     ``checkpoint_every`` steps (:func:`tasks.training.run_loop`). Every network is trained ``seeds`` times (``seed``, ``seed + 1``, ...). Each method is scored
     on the test split in the perfect setting and in ``noisy``; the ``robustness`` sweeps (pose
     noise, delay, the feature-sending methods' message bits) use the first seed's networks.
-    Intervals: ``bootstrap`` replicates over test scenarios (and seeds).
+    Intervals: ``bootstrap`` replicates over test scenarios (and seeds). ``test_scenarios``: score
+    on the first n scenarios of ``test_split`` only (None: all of them; the split may be larger for
+    the fusion benchmark, which reads it whole).
 
     ``data``: what the networks train on, each scored on the true test split: ``oracle`` (every
     agent's true cloud) and ``generated`` (the cooperating agents' clouds TYP generated for the
@@ -295,6 +297,7 @@ class SscConfig:
     domain: str
     train_split: str
     test_split: str
+    test_scenarios: int | None
     reports: str
     out: str
 
@@ -309,6 +312,9 @@ class SscConfig:
         _check_methods(where, f"{name}.methods", self.methods, SSC_METHODS)
         _positive_fields(self, where, name, "comm_range", "steps", "warm_start_steps", "checkpoint_every", "lr",
                          "finetune_lr", "seeds", "bootstrap")
+        if self.test_scenarios is not None and self.test_scenarios < 1:
+            raise TypError(where, f"{name}.test_scenarios", "None (every scenario) or a count >= 1",
+                           self.test_scenarios)
         if not self.class_weight_eps > 1:
             raise TypError(where, f"{name}.class_weight_eps", "a number > 1 (1 / ln(eps + share) stays finite)",
                            self.class_weight_eps)
