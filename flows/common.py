@@ -189,33 +189,42 @@ def plain_task(fn: Callable, name: str):
 class PrefectTrainings:
     """:class:`tasks.training.Trainings` with each training a stage reports as one Prefect task
     run named after it: trained here, the task runs it; trained by a process pool, the task starts
-    with it and ends with it, in its state. As a context manager it waits, on the way out, until
-    each of those has its final state."""
+    with it and ends with it, in its state. Use it as a context manager: on the way out it waits
+    until each of those has its final state.
+
+    A pool's trainings run at once, so their task runs get a thread pool of their own: the training
+    flows' own task runner has one thread (they call their tasks in turn), on which each task run
+    would wait for the one before it and start late."""
 
     def __init__(self) -> None:
         self.pending: list = []
+        self._runner = None
 
     def __enter__(self) -> "PrefectTrainings":
+        from prefect.task_runners import ThreadPoolTaskRunner
+
+        self._runner = ThreadPoolTaskRunner().__enter__()   # threads on demand, one per running training
         return self
 
     def __exit__(self, *exc) -> None:
-        self.wait()
+        from prefect.futures import wait
+
+        try:
+            wait(self.pending)
+        finally:
+            self._runner.__exit__(*exc)
 
     def run(self, name: str, fn: Callable[[], object]) -> object:
         return self._task(fn, name)()
 
     def started(self, name: str, future) -> None:
-        self.pending.append(self._task(future.result, name).submit())
+        if self._runner is None:
+            raise RuntimeError("PrefectTrainings.started outside its `with` block")
+        self.pending.append(self._runner.submit(self._task(future.result, name), parameters={}))
 
     @staticmethod
     def _task(fn: Callable, name: str):
         return plain_task(fn, name).with_options(task_run_name=name)   # the run is called as the training
-
-    def wait(self) -> None:
-        """Until every task run of a pool's training has its final state."""
-        from prefect.futures import wait
-
-        wait(self.pending)
 
 
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:

@@ -393,18 +393,27 @@ def test_each_training_is_one_prefect_task_run(project):
 
 
 PROBE = """
-import concurrent.futures
+import concurrent.futures, threading, time
 from prefect import flow
+from prefect.task_runners import ThreadPoolTaskRunner
 from flows.common import PrefectTrainings
 
-def diverged():
+diverged = threading.Event()
+
+def training():
+    diverged.wait(60)
+    time.sleep(2)            # still training well after the other one failed
+    return 1.5
+
+def diverging():
+    diverged.set()
     raise ValueError("loss is NaN")
 
-@flow(name="trainings-probe")
+@flow(name="trainings-probe", task_runner=ThreadPoolTaskRunner(max_workers=1))   # as run_stage gives training flows
 def probe():
     with concurrent.futures.ThreadPoolExecutor(2) as pool, PrefectTrainings() as trainings:
-        trainings.started("train-pooled-seed0", pool.submit(lambda: 1.5))
-        trainings.started("train-diverged-seed0", pool.submit(diverged))
+        trainings.started("train-pooled-seed0", pool.submit(training))
+        trainings.started("train-diverged-seed0", pool.submit(diverging))
         assert trainings.run("train-here-seed0", lambda: 2.0) == 2.0
 
 probe()
@@ -413,12 +422,20 @@ probe()
 
 def test_a_pool_training_is_a_task_run_that_ends_in_its_state(project):
     """Trainings on a process pool (the fusion and ssc stages on 2+ threads): each is a task run
-    that completes with its training, or fails with it."""
+    that runs while its training runs, and completes with it or fails with it."""
+    import contextlib
+    import sqlite3
+
     proj, env, _ = project
     _run([str(VENV_BIN / "typ"), "with-server", sys.executable, "-c", PROBE], proj, env)
     assert _task_runs(proj, "trainings-probe") == {"train-pooled-seed0": {"COMPLETED"},
                                                    "train-diverged-seed0": {"FAILED"},
                                                    "train-here-seed0": {"COMPLETED"}}
+    with contextlib.closing(sqlite3.connect(proj / ".prefect" / "prefect.db")) as db:
+        times = {name: (start, end) for name, start, end in db.execute(
+            "SELECT name, start_time, end_time FROM task_run WHERE name IN (?, ?)",
+            ("train-pooled-seed0", "train-diverged-seed0"))}
+    assert times["train-diverged-seed0"][0] < times["train-pooled-seed0"][1]   # at once, not one after the other
 
 
 KITTI = REPO.parent / "shared" / "data" / "kitti_object_vis"
