@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from prefect import flow
 
-from flows.common import PrefectTrainings, Timer, finish_stage
+from flows.common import Timer, finish_stage, training_task
 from tasks import adapt as stage
 from tasks.voxel_data import load_views
 from tasks.vqvae import load_model as load_vqvae
@@ -29,7 +29,7 @@ def adapt_flow(params: str = "params.yaml", root: str = ".") -> dict:
     metrics: dict = {"source_views": len(src_train), "target_views": len(tgt_train)}
     with stage_run(STAGE, cfg, root=root_path) as run:
         with Timer() as timer:
-            source_vq, disc = PrefectTrainings().run(f"train-source_vq-seed{block.seed}", lambda: stage.train(
+            source_vq, disc = training_task(f"train-source_vq-seed{block.seed}", lambda: stage.train(
                 block, target_vq, src_train, tgt_train, out=out, log_fn=run.metrics))
         metrics["seconds_training"] = round(timer.seconds, 3)
         # training-side figures on training views (held-out ones are the evaluate stage's):

@@ -215,7 +215,7 @@ class PrefectTrainings:
             self._runner.__exit__(*exc)
 
     def run(self, name: str, fn: Callable[[], object]) -> object:
-        return self._task(fn, name)()
+        return training_task(name, fn)
 
     def started(self, name: str, future) -> None:
         if self._runner is None:
@@ -225,6 +225,12 @@ class PrefectTrainings:
     @staticmethod
     def _task(fn: Callable, name: str):
         return plain_task(fn, name).with_options(task_run_name=name)   # the run is called as the training
+
+
+def training_task(name: str, fn: Callable[[], object]) -> object:
+    """One training, run here as a Prefect task run named ``name`` (``train-<network>-seed<k>``):
+    what a flow that trains one network at a time calls, :meth:`PrefectTrainings.run` as well."""
+    return PrefectTrainings._task(fn, name)()
 
 
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:

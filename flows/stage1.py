@@ -7,7 +7,7 @@ import numpy as np
 import torch
 from prefect import flow
 
-from flows.common import PrefectTrainings, Timer, finish_stage, plain_task
+from flows.common import Timer, finish_stage, plain_task, training_task
 from tasks import stage1 as stage
 from tasks.voxel_data import load_views
 from tasks.vqvae import load_model as load_vqvae
@@ -34,7 +34,7 @@ def stage1_flow(params: str = "params.yaml", root: str = ".") -> dict:
         _, val_cond = stage.encode_views(x_vq, y_vq, val)
         for seed in stage.replica_seeds(block.seed, block.replicas):
             with Timer() as timer:
-                model = PrefectTrainings().run(f"train-ldm-seed{seed}", lambda: stage.train(
+                model = training_task(f"train-ldm-seed{seed}", lambda: stage.train(
                     block, latents, cond, seed=seed, views=len(train), out=out, log_fn=run.metrics))
             logits = plain_task(stage.sample_logits, "sample-val")(
                 model, x_vq, val_cond, cfg=block, generator=torch.Generator().manual_seed(seed + 1))

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from prefect import flow
 
-from flows.common import PrefectTrainings, Timer, finish_stage, plain_task
+from flows.common import Timer, finish_stage, plain_task, training_task
 from models.vqvae import PooledBoxMap
 from tasks import vqvae as stage
 from tasks.voxel_data import load_views
@@ -29,7 +29,7 @@ def vqvae_flow(params: str = "params.yaml", root: str = ".") -> dict:
     with stage_run(STAGE, cfg, root=root_path) as run:
         for kind in stage.KINDS:
             with Timer() as timer:
-                model = PrefectTrainings().run(f"train-{kind}-seed{block.seed}", lambda: stage.train_one(
+                model = training_task(f"train-{kind}-seed{block.seed}", lambda: stage.train_one(
                     kind, block, train, out=out, log_fn=run.metrics))
             if isinstance(model, PooledBoxMap):  # nothing learned: y^f is the box map averaged per cell
                 metrics[kind] = {"encoding": "pool"}

@@ -181,7 +181,8 @@ def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
     # why the generated arm cannot run (None: it runs), asked once for training and for scoring
     gen_unavailable = unavailable(generated_root(block, root)) if "generated" in block.data else None
     generated = "generated" in block.data and gen_unavailable is None
-    train_arms(block, root, ["oracle", "generated"] if generated else ["oracle"], weights, log, trainings)
+    train_arms(block, root, ["oracle", "generated"] if generated else ["oracle"], weights, log, trainings,
+               sets={"oracle": data})
     noisy_ds = test_ds.with_options(position_std=block.noisy.position_std,
                                     heading_std_deg=block.noisy.heading_std_deg,
                                     delay_frames=block.noisy.delay_ms // 100, seed=block.seed)

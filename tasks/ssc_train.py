@@ -226,26 +226,32 @@ def _train_arm(block: SscConfig, root: Path, data_name: str, seed: int, weights:
 
 
 def train_arms(block: SscConfig, root: Path, arms: Sequence[str], weights: np.ndarray,
-               log: Callable[[str], None] = print, trainings: Trainings = Trainings()) -> None:
+               log: Callable[[str], None] = print, trainings: Trainings = Trainings(),
+               sets: dict[str, TrainingSet] | None = None) -> None:
     """Train (or find by key) every network of each arm in ``arms`` and each seed, the (arm, seed)
     pairs on spawned one-thread processes, as many at once as torch has threads (module doc), each
     reported to ``trainings`` as ``train-<arm>-seed<k>``; :func:`train_seed` then loads them. With
-    one thread or one pair nothing is spawned: they train here, on one thread as well."""
+    one thread or one pair nothing is spawned: they train here, on one thread as well, from
+    ``sets[arm]`` where the caller has read that arm's training set already."""
     import concurrent.futures
     import multiprocessing
 
     jobs = [(arm, seed) for seed in block.training_seeds for arm in arms]
     workers = min(len(jobs), torch.get_num_threads())
+    names = {job: f"train-{job[0]}-seed{job[1]}" for job in jobs}
     if workers < 2:
+        sets = dict(sets or {})
         for arm, seed in jobs:
-            trainings.run(f"train-{arm}-seed{seed}", lambda: train_seed(
-                block, training_set(block, root, arm), weights, seed, Path(root) / block.out, log, data_name=arm))
+            if arm not in sets:
+                sets[arm] = training_set(block, root, arm)
+            trainings.run(names[arm, seed], lambda: train_seed(
+                block, sets[arm], weights, seed, Path(root) / block.out, log, data_name=arm))
         return
     ctx = multiprocessing.get_context("spawn")    # no fork of a process whose OpenMP pool runs
     with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
         futures = []
         for arm, seed in jobs:
             futures.append(pool.submit(_train_arm, block, Path(root), arm, seed, weights))
-            trainings.started(f"train-{arm}-seed{seed}", futures[-1])
+            trainings.started(names[arm, seed], futures[-1])
         for future in futures:                    # a worker's error is raised here
             log(f"ssc: the networks of {future.result()} are trained")

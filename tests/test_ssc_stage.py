@@ -324,3 +324,38 @@ def test_arms_trained_on_spawned_processes_are_the_bytes_of_one_thread_in_proces
     # the generated arm learns from the ego views only (tiny's generated_views): its own network
     assert (pooled / "generated" / "single-seed0" / "model.safetensors").read_bytes() != \
         (pooled / "oracle" / "single-seed0" / "model.safetensors").read_bytes()
+
+
+def test_one_thread_arms_train_here_from_the_sets_the_caller_read(root, tmp_path, monkeypatch):
+    """On one thread train_arms trains each (arm, seed) here, as one named training, reading an
+    arm's training set only when the caller has not read it already (ssc's run reads the oracle's)."""
+    import shutil
+
+    from tasks.training import Trainings
+
+    proj = tmp_path / "proj"
+    shutil.copytree(root / "data" / "sim", proj / "data" / "sim")
+    shutil.copytree(root / "data" / "sim" / "real_cav" / "train", proj / "data" / "generated" / "real_cav" / "train")
+    block = _block(tmp_path, methods=["none"], steps=2, warm_start_steps=1)
+    oracle = S.training_set(block, proj, "oracle")
+    weights = S.class_weights(oracle.class_counts(), eps=block.class_weight_eps)
+    read, names = [], []
+    real_read = T.training_set
+    monkeypatch.setattr(T, "training_set", lambda b, r, arm: read.append(arm) or real_read(b, r, arm))
+
+    class Named(Trainings):
+        def run(self, name, fn):
+            names.append(name)
+            return fn()
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        S.train_arms(block, proj, ["oracle", "generated"], weights, log=lambda m: None, trainings=Named(),
+                     sets={"oracle": oracle})
+    finally:
+        torch.set_num_threads(threads)
+    assert read == ["generated"]
+    assert names == ["train-oracle-seed0", "train-generated-seed0"]
+    for arm in ("oracle", "generated"):
+        assert (proj / block.out / "models" / arm / "single-seed0" / "model.safetensors").is_file()
