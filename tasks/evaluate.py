@@ -38,10 +38,7 @@ GENERATION_REPORT = Path("reports") / "generation_accuracy.md"
 PLOTTED = PLOTTED_GENERATION_METHODS
 GALLERY = Path("reports") / "gallery"
 
-ACCURACY_COLUMNS = [("iou", "IoU"), ("iou_0-20", "IoU 0–20 m"), ("iou_20-40", "IoU 20–40 m"),
-                    ("iou_40-80", "IoU 40–80 m"), ("iou_seen", "IoU seen"), ("iou_unseen", "IoU unseen"),
-                    ("iou_above_ground", "IoU above ground"), ("object_hit_rate", "object hit rate"),
-                    ("chamfer_m", "Chamfer m"), ("jsd_r2dm", "JSD"), ("mmd_r2dm", "MMD")]
+ACCURACY_COLUMNS = [(name, m.label) for name, m in genscore.METRICS.items() if m.in_table]
 #: the adaptation ablation's rows (TYP Table 4), as tasks.selftrain names them
 TABLE4 = tuple(v.name for v in selftrain.TABLE4)
 
@@ -62,13 +59,13 @@ def table(rows: dict[str, dict], columns: list[tuple[str, str]], first: str = "m
 
 def comparisons(table_: dict[str, dict[str, Interval]], pairs: list[tuple[str, str, str]]) -> list[str]:
     """``A beats B on fig`` / ``does not beat`` lines from the intervals (higher is better, but
-    for ``chamfer_m`` / ``jsd_r2dm`` / ``mmd_r2dm`` lower is)."""
+    lower where the figure's declaration says so: :data:`tasks.genscore.METRICS`, :mod:`tasks.realism`)."""
     lines = []
     for a, b, fig in pairs:
         if fig not in table_.get(a, {}) or fig not in table_.get(b, {}):
             continue
         x, y = table_[a][fig], table_[b][fig]
-        lower = fig in ("chamfer_m", "jsd_r2dm", "mmd_r2dm") or realism.LOWER_IS_BETTER.get(fig, False)
+        lower = genscore.lower_is_better(fig) or realism.LOWER_IS_BETTER.get(fig, False)
         wins = (y.low > x.high) if lower else x.above(y)
         verdict = "**beats**" if wins else "does not beat"
         lines.append(f"- {gen.label(a)} {verdict} {gen.label(b)} on {fig}: {cell(x)} vs {cell(y)}")
@@ -123,8 +120,7 @@ def write_generation_report(path: Path, result: dict, *, extra: list[str], galle
     return write_text(path, "\n".join(text) + "\n") or path
 
 
-REALISM_COLUMNS = [("on_beam", "on a beam ±0.05° ↑"), ("row_profile_l1", "row profile L1 ↓"),
-                   ("frid", "FRID† ↓"), ("fpvd", "FPVD† ↓")]
+REALISM_COLUMNS = realism.COLUMNS
 
 
 def realism_section(result: dict) -> list[str]:

@@ -34,15 +34,18 @@ def test_a_perfect_view_scores_one_and_a_copy_shifted_off_the_walls_scores_less(
     stats = genscore.true_view_stats(truth, GRID)
     boxes = np.zeros((0, 7))
     perfect = genscore.score_pair(truth, np.zeros((0, 3)), truth, seen, boxes, GRID, stats)
-    assert all(tp > 0 and fp == 0 and fn == 0 for tp, fp, fn in perfect.counts.values() if tp + fn)
-    assert perfect.chamfer == 0.0
+    ious = {k: v for k, v in perfect.items() if k.startswith("iou")}
+    assert len(ious) == 7 and all(0 < tp == union for tp, union in ious.values() if union), ious
+    assert perfect["chamfer_m"] == 0.0
     ground_only = truth.copy()
     ground_only[2:] = False
     s = genscore.score_pair(ground_only, np.zeros((0, 3)), truth, seen, boxes, GRID, stats)
-    tp, fp, fn = s.counts["above_ground"]
-    assert tp == 0 and fn == truth[2:].sum()           # the wall is all that is above the ground
-    tp, fp, fn = s.counts["all"]
-    assert tp == truth[:2].sum() and fp == 0
+    tp, union = s["iou_above_ground"]
+    assert tp == 0 and union == truth[2:].sum()        # the wall is all that is above the ground
+    assert s["iou"] == (truth[:2].sum(), truth.sum())
+    assert s["precision"] == (truth[:2].sum(), truth[:2].sum())   # no false positive
+    seen_tp, seen_union = s["iou_seen"]
+    assert seen_union == truth[:, :32].sum() and seen_tp == truth[:2, :32].sum()
 
 
 def test_object_hits_count_boxes_within_range_holding_enough_points():
@@ -67,8 +70,8 @@ def test_summary_pools_scenes_and_seeds_with_intervals():
     # scene a: perfect, scene b: half, for both seeds
     table = genscore.summarize([[perfect, worse], [perfect, worse]], ["a", "b"], [stats["histogram"]] * 2,
                                [stats["centres"]] * 2, n_boot=200)
-    tp = perfect.counts["all"][0] + worse.counts["all"][0]
-    union = sum(perfect.counts["all"]) + sum(worse.counts["all"])
+    tp = perfect["iou"][0] + worse["iou"][0]
+    union = perfect["iou"][1] + worse["iou"][1]
     assert table["iou"].value == pytest.approx(tp / union)
     assert table["iou"].low < table["iou"].value < table["iou"].high
     assert table["jsd_r2dm"].value > 0
@@ -102,3 +105,40 @@ def test_jsd_interval_holds_its_figure_when_resampling_biases_it():
         centres.append(stats["centres"])
     jsd = genscore.summarize([scores], scenes, hists, centres, n_boot=200)["jsd_r2dm"]
     assert 0 < jsd.low <= jsd.value <= jsd.high
+
+
+def test_a_new_figure_is_one_registry_entry_scored_pooled_and_tabled(monkeypatch):
+    """Adding a generation figure to :data:`genscore.METRICS` is all it takes: every pair gets
+    its value, summarize pools it, and the generation report's table has its column."""
+    from tasks import evaluate
+
+    metric = genscore.Metric("ground voxels", lambda p: (int(p.occupancy[1].sum()), int(p.truth[1].sum())),
+                             genscore.pool_ratio, lower_is_better=True)
+    monkeypatch.setitem(genscore.METRICS, "ground_ratio", metric)
+    truth = _flat_view()
+    stats = genscore.true_view_stats(truth, GRID)
+    half = truth.copy()
+    half[1, :, :32] = False
+    seen = np.ones((64, 64), bool)
+    rows = [[genscore.score_pair(v, np.zeros((0, 3)), truth, seen, np.zeros((0, 7)), GRID, stats)
+             for v in (truth, half)]]
+    assert rows[0][1]["ground_ratio"] == (half[1].sum(), truth[1].sum())
+    table = genscore.summarize(rows, ["a", "b"], [stats["histogram"]] * 2, [stats["centres"]] * 2, n_boot=50)
+    assert table["ground_ratio"].value == pytest.approx((truth[1].sum() + half[1].sum()) / (2 * truth[1].sum()))
+    monkeypatch.setattr(evaluate, "ACCURACY_COLUMNS",
+                        [(k, m.label) for k, m in genscore.METRICS.items() if m.in_table])
+    md = evaluate.table({"typ": table}, evaluate.ACCURACY_COLUMNS)
+    assert "ground voxels" in md.splitlines()[0] and genscore.lower_is_better("ground_ratio")
+    pooled = {name: genscore.summarize([[r] * 2], ["a", "b"], [stats["histogram"]] * 2, [stats["centres"]] * 2,
+                                       n_boot=50) for name, r in (("half", rows[0][1]), ("same", rows[0][0]))}
+    lines = evaluate.comparisons(pooled, [("half", "same", "ground_ratio"), ("same", "half", "ground_ratio")])
+    assert "**beats**" in lines[0] and "does not beat" in lines[1]     # lower wins: the flag is read
+
+
+def test_the_report_columns_are_the_registry_in_order():
+    from tasks import evaluate
+
+    assert [k for k, _ in evaluate.ACCURACY_COLUMNS] == [
+        "iou", "iou_0-20", "iou_20-40", "iou_40-80", "iou_seen", "iou_unseen", "iou_above_ground",
+        "object_hit_rate", "chamfer_m", "jsd_r2dm", "mmd_r2dm"]
+    assert {k for k, m in genscore.METRICS.items() if m.lower_is_better} == {"chamfer_m", "jsd_r2dm", "mmd_r2dm"}
