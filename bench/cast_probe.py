@@ -30,6 +30,7 @@ from typ.config import CastConfig, as_dict, load_config  # noqa: E402
 from typ.resim import hybrid, hybrid_points  # noqa: E402
 from typ.sensors import on_beam_fractions  # noqa: E402
 from typ.sim.sensor import domain_spec  # noqa: E402
+from typ.reporting import markdown_table  # noqa: E402
 from typ.voxel import Grid, voxelize  # noqa: E402
 
 KEYS = ("iou", "iou_above_ground", "iou_seen", "iou_unseen", *(f"iou_{genscore.band_label(*b)}" for b in genscore.BANDS),
@@ -66,8 +67,7 @@ def main() -> None:
     seed = cfg.stage1.seed
     occ, points, sec = gen.sample_method(pipe, data, seed)
     print(f"{len(data)} pairs, {len(set(data.scenes))} scenes")
-    print("| method | " + " | ".join(KEYS) + " | on beam ±0.05° | s/view |")
-    print("|---" * (len(KEYS) + 3) + "|")
+    print(markdown_table(["method", *KEYS, "on beam ±0.05°", "s/view"], []))
     print(line("TYP", data, occ, points, spec, sec))
     print(line("re-simulation", data, data.resim > 0.5, data.resim_points, spec, data.resim_seconds))
     hyb = hybrid(data.resim > 0.5, occ, data.seen)

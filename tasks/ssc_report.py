@@ -129,8 +129,8 @@ def report_markdown(results: dict, block: SscConfig) -> str:
         *_generated(results, block),
         "## V2VSSC Table I (OPV2V-based V2VSSC test set, VoxelNet), for reference",
         "",
-        "| method | " + " | ".join(h for _, h in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|",
-        *(f"| {DISPLAY[m]} | " + " | ".join(f"{v:.1f}" for v in PAPER[m]) + " |" for m in DISPLAY if m in PAPER),
+        *markdown_table(["method", *(h for _, h in COLUMNS)],
+                        ([DISPLAY[m], *(f"{v:.1f}" for v in PAPER[m])] for m in DISPLAY if m in PAPER)).split("\n"),
         "",
         "## Robustness (Figs. 4–5), first seed",
         "",
@@ -146,10 +146,9 @@ def report_markdown(results: dict, block: SscConfig) -> str:
         xs = rob["applied_delay_ms"] if sweep == "delay_ms" else levels
         lines += [f"mIoU (%) against {label}" + (" (every message exactly this old)" if sweep == "delay_ms"
                                                  else "") + ":", "",
-                  "| method | " + " | ".join(f"{x:g}" for x in xs) + " |", "|---" * (len(xs) + 1) + "|"]
-        for method, entry in rob["methods"].items():
-            lines.append(f"| {DISPLAY[method]} | " + " | ".join(_pct(c["miou"]) for c in entry[sweep]) + " |")
-        lines.append("")
+                  markdown_table(["method", *(f"{x:g}" for x in xs)],
+                                 ([DISPLAY[m], *(_pct(c["miou"]) for c in entry[sweep])]
+                                  for m, entry in rob["methods"].items())), ""]
     for method, per in rob["quantization"].items():
         lines += [f"{DISPLAY[method]} with its messages quantised (per-channel min-max, V2VSSC Fig. 5's "
                   "compression), mIoU (%): " + ", ".join(f"{b} bit {_pct(v['miou'])}" for b, v in per.items()) + ".",
