@@ -138,10 +138,7 @@ def train(cfg: AdaptConfig, target_vq: BEVVQVAE, source_views: ViewSet, target_v
 
     with distributed.on_device(source_vq, disc, target_vq):
         run_loop(name="adapt", total_steps=total, step_fn=step_fn,
-                 get_state=lambda: {"source": source_vq.state_dict(), "disc": disc.state_dict(),
-                                    "opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict()},
-                 set_state=lambda s: (source_vq.load_state_dict(s["source"]), disc.load_state_dict(s["disc"]),
-                                      opt_g.load_state_dict(s["opt_g"]), opt_d.load_state_dict(s["opt_d"])),
+                 state={"source": source_vq, "disc": disc, "opt_g": opt_g, "opt_d": opt_d},
                  checkpoint_dir=ckpt_dir, curve=out / "loss" / "adapt.csv", checkpoint_every=cfg.checkpoint_every,
                  log_fn=lambda values, step: log_fn({f"adapt.{k}": v for k, v in values.items()}, step))
     return source_vq.eval(), disc.eval()

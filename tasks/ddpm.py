@@ -137,8 +137,7 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
     t0 = time.perf_counter()
     with distributed.on_device(model):
         run_loop(name=f"ddpm {name}", total_steps=cfg.steps, step_fn=step_fn,
-                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 state={"model": model, "opt": opt},
                  checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key), curve=out / "loss" / f"{name}.csv",
                  checkpoint_every=cfg.checkpoint_every,
                  log_fn=lambda v, step: log_fn({f"ddpm.{name}.{k}": val for k, val in v.items()}, step))

@@ -188,8 +188,7 @@ def train(method: str, cfg: FusionConfig, inputs: Inputs, *, steps: int, out: Pa
 
     with distributed.on_device(model):
         result = run_loop(name=f"fusion {name}", total_steps=steps, step_fn=step_fn,
-                          get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-                          set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                          state={"model": model, "opt": opt},
                           checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key),
                           checkpoint_every=cfg.checkpoint_every, log_fn=log)
     model.eval()

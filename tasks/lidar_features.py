@@ -164,8 +164,7 @@ def _train_one(kind: str, cfg: FeatureNetConfig, seed: int, x: torch.Tensor, y: 
 
     with distributed.on_device(net):
         run_loop(name=f"ddpm features-{kind}", total_steps=cfg.steps, step_fn=step_fn,
-                 get_state=lambda: {"model": net.state_dict(), "opt": opt.state_dict()},
-                 set_state=lambda s: (net.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 state={"model": net, "opt": opt},
                  checkpoint_dir=ckpt_dir, curve=out / "loss" / f"features-{kind}.csv", checkpoint_every=max(1, cfg.steps // 4),
                  log_fn=lambda v, step: log_fn({f"ddpm.features_{kind}.{k}": val for k, val in v.items()}, step))
     return net.eval()

@@ -58,8 +58,7 @@ def _fit(model: FusionModule, step: Callable[[int, torch.device], tuple[torch.Te
             return {"loss": loss.item()}
 
         result = run_loop(name=f"ssc {name}", total_steps=steps, step_fn=step_fn,
-                          get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-                          set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                          state={"model": model, "opt": opt},
                           checkpoint_dir=checkpoints, checkpoint_every=checkpoint_every or steps)
     model.eval()
     return [h["loss"] for h in result.history]

@@ -123,9 +123,7 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, seed:
 
     with distributed.on_device(model, ema.shadow):
         run_loop(name=f"stage1 seed {seed}", total_steps=total, step_fn=step_fn,
-                 get_state=lambda: {"model": model.state_dict(), "ema": ema.shadow.state_dict(), "opt": opt.state_dict()},
-                 set_state=lambda s: (model.load_state_dict(s["model"]), ema.shadow.load_state_dict(s["ema"]),
-                                      opt.load_state_dict(s["opt"])),
+                 state={"model": model, "ema": ema.shadow, "opt": opt},
                  checkpoint_dir=ckpt_dir, curve=Path(out) / "loss" / f"seed_{seed}.csv", checkpoint_every=cfg.checkpoint_every,
                  log_fn=lambda values, step: log_fn({f"stage1.seed_{seed}.{k}": v for k, v in values.items()}, step))
     return ema.shadow.eval()

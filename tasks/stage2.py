@@ -253,10 +253,7 @@ def _fit(trained: torch.nn.Module, predict: Callable, data: Latents, *, schedule
 
     with distributed.on_device(trained, ema.shadow, *frozen):
         run_loop(name=name, total_steps=total, step_fn=step_fn,
-                 get_state=lambda: {"model": trained.state_dict(), "ema": ema.shadow.state_dict(),
-                                    "opt": opt.state_dict()},
-                 set_state=lambda st: (trained.load_state_dict(st["model"]), ema.shadow.load_state_dict(st["ema"]),
-                                       opt.load_state_dict(st["opt"])),
+                 state={"model": trained, "ema": ema.shadow, "opt": opt},
                  checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key), curve=out / "loss" / f"{name}.csv",
                  checkpoint_every=s.checkpoint_every,
                  log_fn=lambda values, step: log_fn({f"{name}.{k}": v for k, v in values.items()}, step))

@@ -24,7 +24,7 @@ import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 import torch
@@ -162,14 +162,26 @@ def set_rng_state(state: dict[str, torch.Tensor] | None) -> None:
         torch.cuda.set_rng_state(state["cuda"])
 
 
+def state_of(state: Mapping[str, object]) -> dict:
+    """``{name: obj.state_dict()}`` of a run's stateful objects (modules, optimizers, EMA shadows)."""
+    return {key: obj.state_dict() for key, obj in state.items()}
+
+
+def load_state(state: Mapping[str, object], saved: dict) -> None:
+    """Restore each of ``state``'s objects from ``saved[name]`` (:func:`state_of`'s layout)."""
+    for key, obj in state.items():
+        obj.load_state_dict(saved[key])
+
+
 def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, float]],
-             get_state: Callable[[], dict], set_state: Callable[[dict], None], checkpoint_dir: Path,
+             state: Mapping[str, object], checkpoint_dir: Path,
              checkpoint_every: int, log_fn: Callable[[dict[str, float], int], None] | None = None,
              grad_norm_limit: float = 1e6, curve: Path | None = None) -> LoopResult:
     """Run ``step_fn(step)`` for steps ``[start, total_steps)``, resuming from the newest checkpoint.
 
     step_fn returns scalars to log (must include ``loss``; may include ``grad_norm``).
-    get_state/set_state give and restore everything a resume needs (models, optimizers).
+    state: everything a resume needs, by name: objects with ``state_dict`` / ``load_state_dict``
+    (models, optimizers, EMA shadows); a checkpoint holds each one's state under its name.
     ``curve``: where to write every step's scalars at the end (:func:`write_curve`), rank 0 only.
     """
     start = 0
@@ -178,11 +190,11 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
     if saved is not None:
         history = list(saved.pop("history", []))
         set_rng_state(saved.pop(RNG_KEY, None))
-        set_state(saved)
+        load_state(state, saved)
         start = int(saved["step"])
     if distributed.world_size() > 1:
-        shared = distributed.broadcast_object({"step": start, **get_state()})
-        set_state(shared)
+        shared = distributed.broadcast_object({"step": start, **state_of(state)})
+        load_state(state, shared)
         start = shared["step"]
     main = distributed.is_main()
     last: dict[str, float] = {}
@@ -207,7 +219,7 @@ def run_loop(*, name: str, total_steps: int, step_fn: Callable[[int], dict[str, 
                 log_fn(values, step)
             done = step + 1
             if main and (done % checkpoint_every == 0 or done == total_steps):
-                save_checkpoint(checkpoint_dir, done, {**get_state(), "history": history, RNG_KEY: rng_state()})
+                save_checkpoint(checkpoint_dir, done, {**state_of(state), "history": history, RNG_KEY: rng_state()})
             bar.update(task, advance=1, description=f"loss {values['loss']:.4f}")
     if curve is not None and main:
         write_curve(Path(curve), history)

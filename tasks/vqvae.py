@@ -78,8 +78,7 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
 
     with distributed.on_device(model):
         run_loop(name=f"vqvae-{kind}", total_steps=total, step_fn=step_fn,
-                 get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-                 set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+                 state={"model": model, "opt": opt},
                  checkpoint_dir=ckpt_dir, curve=out / "loss" / f"{kind}.csv", checkpoint_every=cfg.checkpoint_every,
                  log_fn=lambda values, step: log_fn({f"{kind}.{k}": v for k, v in values.items()}, step))
     save_model(model, out / kind)

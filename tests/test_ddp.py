@@ -49,8 +49,7 @@ def _train(out: Path, batch_size: int) -> tuple[dict[str, torch.Tensor], list[in
         return {"loss": float(loss.detach())}
 
     run_loop(name="ddp-test", total_steps=STEPS, step_fn=step_fn,
-             get_state=lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-             set_state=lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])),
+             state={"model": model, "opt": opt},
              checkpoint_dir=out / "checkpoints", checkpoint_every=2, log_fn=lambda values, step: logged.append(step))
     return {k: v.detach().clone() for k, v in model.state_dict().items()}, logged
 

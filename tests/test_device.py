@@ -16,6 +16,7 @@ import torch
 
 from tasks import adapt, fusion_train, pipeline, stage1, stage2, vqvae
 from tasks.fusion_batch import Inputs
+from tasks.training import state_of
 from tasks.voxel_data import ViewSet
 from typ import distributed
 from typ.config import config_from_dict
@@ -46,9 +47,9 @@ def meta_runtime(monkeypatch):
 
 def _one_step_loop(seen: list):
     """Stand-in for ``run_loop``: one step, record what it logged and where the params are, stop."""
-    def loop(*, step_fn, get_state, **_):
+    def loop(*, step_fn, state, **_):
         values = step_fn(0)
-        seen.append((values, {t.device.type for t in get_state_tensors(get_state())}))
+        seen.append((values, {t.device.type for t in get_state_tensors(state_of(state))}))
         raise StepRan
     return loop
 

@@ -22,24 +22,22 @@ def _setup():
         opt.step()
         return {"loss": float(loss.detach())}
 
-    state = (lambda: {"model": model.state_dict(), "opt": opt.state_dict()},
-             lambda s: (model.load_state_dict(s["model"]), opt.load_state_dict(s["opt"])))
-    return model, step_fn, state
+    return model, step_fn, {"model": model, "opt": opt}
 
 
 def test_resume_matches_uninterrupted(tmp_path):
-    model_a, step_a, (get_a, set_a) = _setup()
-    full = run_loop(name="a", total_steps=10, step_fn=step_a, get_state=get_a, set_state=set_a,
+    model_a, step_a, state_a = _setup()
+    full = run_loop(name="a", total_steps=10, step_fn=step_a, state=state_a,
                     checkpoint_dir=tmp_path / "a", checkpoint_every=3, curve=tmp_path / "a.csv")
 
-    model_b, step_b, (get_b, set_b) = _setup()
+    model_b, step_b, state_b = _setup()
     with pytest.raises(KeyboardInterrupt):
-        run_loop(name="b", total_steps=10, step_fn=lambda s: step_b(s, crash_at=7), get_state=get_b,
-                 set_state=set_b, checkpoint_dir=tmp_path / "b", checkpoint_every=3)
+        run_loop(name="b", total_steps=10, step_fn=lambda s: step_b(s, crash_at=7), state=state_b,
+                 checkpoint_dir=tmp_path / "b", checkpoint_every=3)
     assert [s for s, _ in checkpoints(tmp_path / "b")] == [3, 6]
     # a fresh process: new objects, state only from disk
-    model_c, step_c, (get_c, set_c) = _setup()
-    result = run_loop(name="c", total_steps=10, step_fn=step_c, get_state=get_c, set_state=set_c,
+    model_c, step_c, state_c = _setup()
+    result = run_loop(name="c", total_steps=10, step_fn=step_c, state=state_c,
                       checkpoint_dir=tmp_path / "b", checkpoint_every=3, curve=tmp_path / "c.csv")
     assert result.resumed_from == 6 and result.steps_run == 4
     for pa, pc in zip(model_a.parameters(), model_c.parameters()):
@@ -53,23 +51,23 @@ def test_resume_matches_uninterrupted(tmp_path):
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
-    model, step_fn, (get, set_) = _setup()
+    model, step_fn, state = _setup()
 
     def poisoned(step):
         values = step_fn(step)
         return {"loss": float("nan")} if step == 4 else values
 
     with pytest.raises(TrainingDiverged, match=r"step 4: loss.*last good checkpoint: step_00000004.pt"):
-        run_loop(name="t", total_steps=10, step_fn=poisoned, get_state=get, set_state=set_,
+        run_loop(name="t", total_steps=10, step_fn=poisoned, state=state,
                  checkpoint_dir=tmp_path, checkpoint_every=2)
     assert [s for s, _ in checkpoints(tmp_path)] == [2, 4]
 
 
 def test_exploding_gradient_stops(tmp_path):
-    model, step_fn, (get, set_) = _setup()
+    model, step_fn, state = _setup()
     with pytest.raises(TrainingDiverged, match="grad_norm"):
         run_loop(name="t", total_steps=3, step_fn=lambda s: {**step_fn(s), "grad_norm": 1e9},
-                 get_state=get, set_state=set_, checkpoint_dir=tmp_path, checkpoint_every=1)
+                 state=state, checkpoint_dir=tmp_path, checkpoint_every=1)
 
 
 def test_a_finished_runs_checkpoints_go_and_nothing_else(tmp_path):
