@@ -51,12 +51,12 @@ def _train(job: tuple) -> float:
     inputs = read_inputs(cfg, Roots.from_config(cfg, root), "real")
     t0 = time.perf_counter()
     if method == SINGLE_AGENT:
-        trained = train(method, cfg, inputs, steps=cfg.steps, out=OUT, name=f"{name}/seed{seed}", seed=seed)
+        trained = train(method, cfg, inputs, steps=cfg.steps, out=OUT, name=f"{name}/seed_{seed}", seed=seed)
     else:
         warm = load(model_folder(root / cfg.out, f"oracle-{SINGLE_AGENT}", seed), cfg)
-        trained = train(method, cfg, inputs, steps=cfg.warm_start_steps, out=OUT, name=f"{name}/seed{seed}",
+        trained = train(method, cfg, inputs, steps=cfg.warm_start_steps, out=OUT, name=f"{name}/seed_{seed}",
                         seed=seed, warm=warm)
-    save(trained, OUT / "models" / name / f"seed{seed}", cfg)
+    save(trained, model_folder(OUT, name, seed), cfg)
     return time.perf_counter() - t0
 
 
@@ -82,7 +82,7 @@ def main() -> None:
         seconds = pool.map(_train, jobs, chunksize=1)
     print("training seconds:", ", ".join(f"{j[2]}/seed{j[4]} {s:.0f}" for j, s in zip(jobs, seconds)), flush=True)
 
-    networks = {name: [load(OUT / "models" / name / f"seed{s}", fusion_block(root, changes)) for s in seeds]
+    networks = {name: [load(model_folder(OUT, name, s), fusion_block(root, changes)) for s in seeds]
                 for name, changes in variants.items()}
     if method != SINGLE_AGENT:
         for run in (f"oracle-{SINGLE_AGENT}", f"oracle-{method}"):

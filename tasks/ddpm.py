@@ -42,7 +42,7 @@ from tasks.artifacts import load_if_key, save_module
 from tasks.ddpm_data import (BevRepresentation, RangeRepresentation, Representation, Scan, data_key,  # noqa: F401
                              load_scans, pixel_set, representations, unlabelled)
 from tasks.training import (Trainings, batch_rng, grad_norm, noised_batch, prediction_target, run_checkpoint_dir,
-                            run_loop, seed_everything)
+                            run_loop, seed_dir, seed_everything)
 from typ import distributed
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
 from typ.io import atomic_path, code_digest, hash_obj
@@ -65,11 +65,21 @@ PIXEL_CLIP = {name: spec.pixel for name, spec in SAMPLERS.items()}
 # ---------------------------------------------------------------- models
 
 
-def model_name(run: DdpmRunConfig, seed: int, prediction: str) -> str:
-    """Folder / MLflow name of one trained model: shared by configurations that train the same
-    (``-v`` marks a v-prediction model, so that it does not take an ε model's folder)."""
+def network_name(run: DdpmRunConfig, prediction: str) -> str:
+    """The network a configuration trains, shared by configurations that train the same (``-v``
+    marks a v-prediction model, so that it does not take an ε model's folder)."""
     tag = {"epsilon": "", "v_prediction": "-v"}[prediction]
-    return f"{run.representation}-{run.schedule}-{run.embedding}{tag}-seed{seed}"
+    return f"{run.representation}-{run.schedule}-{run.embedding}{tag}"
+
+
+def model_name(run: DdpmRunConfig, seed: int, prediction: str) -> str:
+    """MLflow / metrics name of one trained model: its network and seed."""
+    return f"{network_name(run, prediction)}-seed{seed}"
+
+
+def model_folder(out: Path, run: DdpmRunConfig, seed: int, prediction: str) -> Path:
+    """``<out>/models/<network>/seed_<k>``: where one trained model is saved."""
+    return seed_dir(Path(out) / "models" / network_name(run, prediction), seed)
 
 
 def build(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation) -> PixelDiffusion:
@@ -109,7 +119,7 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
     """
     name = model_name(run, seed, cfg.prediction)
     key = model_key(cfg, run, rep, seed, data)
-    folder = out / "models" / name
+    folder = model_folder(out, run, seed, cfg.prediction)
     found = load_if_key(folder, PixelDiffusion.from_config, STAGE, key)
     if found is not None:
         model, saved = found
@@ -134,11 +144,12 @@ def train_model(cfg: DdpmConfig, run: DdpmRunConfig, rep: Representation, seed: 
         opt.step()
         return {"loss": float(loss.detach()), "grad_norm": grad_norm(model.parameters())}
 
+    checkpoints = run_checkpoint_dir(seed_dir(out / "checkpoints" / network_name(run, cfg.prediction), seed), key)
     t0 = time.perf_counter()
     with distributed.on_device(model):
         run_loop(name=f"ddpm {name}", total_steps=cfg.steps, step_fn=step_fn,
                  state={"model": model, "opt": opt},
-                 checkpoint_dir=run_checkpoint_dir(out / "checkpoints" / name, key), curve=out / "loss" / f"{name}.csv",
+                 checkpoint_dir=checkpoints, curve=out / "loss" / f"{name}.csv",
                  checkpoint_every=cfg.checkpoint_every,
                  log_fn=lambda v, step: log_fn({f"ddpm.{name}.{k}": val for k, val in v.items()}, step))
     seconds = round(time.perf_counter() - t0, 3)

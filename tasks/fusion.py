@@ -46,7 +46,7 @@ from models.registry import METHODS, SINGLE_AGENT
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
-from tasks.training import Trainings, one_thread
+from tasks.training import Trainings, one_thread, seed_dir
 from typ import distributed
 from typ.config import FusionConfig
 from typ.errors import TypError
@@ -235,7 +235,7 @@ class Benchmark:
                 if self.log_fn is not None:
                     for t in self.networks[run.name]:
                         for row in t.curve:
-                            self.log_fn({f"{run.name}/seed{t.seed}.{k}": v for k, v in row.items() if k != "step"},
+                            self.log_fn({f"{run.name}/seed_{t.seed}.{k}": v for k, v in row.items() if k != "step"},
                                         row["step"])
         return self.networks
 
@@ -333,14 +333,14 @@ def train_job(cfg: FusionConfig, job: Job, inputs: Inputs) -> float:
     warm = None if job.warm is None else load(job.warm, cfg)
     with one_thread():
         trained = train(job.run.method, cfg, inputs, steps=job.run.steps, out=job.out,
-                        name=f"{job.run.name}/seed{job.seed}", seed=job.seed, init=init, warm=warm)
+                        name=f"{job.run.name}/seed_{job.seed}", seed=job.seed, init=init, warm=warm)
     save(trained, job.folder, cfg)
     return time.perf_counter() - t0
 
 
 def model_folder(out: Path, run: str, seed: int) -> Path:
     """Where run ``run``'s network of seed ``seed`` is saved."""
-    return out / "models" / run / f"seed{seed}"
+    return seed_dir(out / "models" / run, seed)
 
 
 _WORKER_INPUTS: dict[str, Inputs] = {}

@@ -32,7 +32,7 @@ from tasks import generate, stage1, stage2
 from tasks.pipeline import PointStats, TYPPipeline, point_statistics
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
-from tasks.training import Trainings
+from tasks.training import Trainings, seed_dir
 from typ.config import SelftrainConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor
@@ -302,4 +302,4 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
 
 def generator_dir(out: Path, seed: int) -> Path:
     """The trained generator of replica ``seed``: ``<out>/generator/seed_<seed>``."""
-    return Path(out) / "generator" / f"seed_{seed}"
+    return seed_dir(Path(out) / "generator", seed)

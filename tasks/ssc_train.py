@@ -20,7 +20,7 @@ from tasks.artifacts import load_if_key, save_module
 from tasks.fusion_data import FusionSample
 from tasks.ssc_data import IGNORE, NETWORK, STAGE, TrainingSet, model_kwargs, ssc_dataset
 from tasks.training import (Trainings, drop_checkpoints, learning_rate, one_thread, run_checkpoint_dir, run_loop,
-                            seed_everything, set_learning_rate)
+                            seed_dir, seed_everything, set_learning_rate)
 from typ import distributed
 from typ.config import SscConfig
 from typ.errors import TypError
@@ -175,7 +175,7 @@ def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: i
             extra = {} if options[name] is None else {"options": options[name]}
             key = hash_obj({**base, "network": name, "init": result.keys["single"], "steps": block.warm_start_steps,
                             "lr": block.finetune_lr, "comm_range": block.comm_range, **extra})[:16]
-        folder = out / "models" / data_name / f"{name}-seed{seed}"
+        folder = seed_dir(out / "models" / data_name / name, seed)
         loaded = load_if_key(folder, _build, STAGE, key)
         if loaded is not None:
             module, meta = loaded
@@ -183,7 +183,7 @@ def train_seed(block: SscConfig, data: TrainingSet, weights: np.ndarray, seed: i
             log(f"ssc: {data_name} {name} seed {seed} loaded from {folder} "
                 f"(key {key}: trained by a worker or an earlier run)")
         else:
-            resume = {"checkpoints": run_checkpoint_dir(out / "checkpoints" / data_name / f"{name}-seed{seed}", key),
+            resume = {"checkpoints": run_checkpoint_dir(seed_dir(out / "checkpoints" / data_name / name, seed), key),
                       "checkpoint_every": block.checkpoint_every}
             with one_thread():
                 if name == "single":

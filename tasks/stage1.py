@@ -27,7 +27,7 @@ from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.artifacts import load_module, save_module
 from tasks.training import (EMA, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
-                            run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
+                            run_checkpoint_dir, run_loop, seed_dir, seed_everything, set_learning_rate, steps_for)
 from tasks.voxel_data import ViewSet, load_views
 from typ import distributed
 from typ.config import Stage1Config, as_dict
@@ -45,7 +45,7 @@ def replica_seeds(seed: int, replicas: int) -> list[int]:
 
 def replica_dir(out: Path, seed: int) -> Path:
     """Where the model trained with ``seed`` lives: ``<out>/seed_<seed>``."""
-    return Path(out) / f"seed_{seed}"
+    return seed_dir(out, seed)
 
 
 def train_views(block: Stage1Config, root: Path) -> ViewSet:
@@ -104,7 +104,7 @@ def train(cfg: Stage1Config, latents: torch.Tensor, cond: torch.Tensor, *, seed:
     total = steps_for(cfg.epochs, views, cfg.batch_size)
     key = hash_obj({"cfg": as_dict(cfg), "seed": seed, "latents": float(latents.double().sum()),
                     "cond": float(cond.double().sum()), "n": len(latents)})[:16]
-    ckpt_dir = run_checkpoint_dir(out / "checkpoints" / f"seed_{seed}", key)
+    ckpt_dir = run_checkpoint_dir(seed_dir(out / "checkpoints", seed), key)
 
     def step_fn(step: int) -> dict[str, float]:
         lr = learning_rate(cfg.lr, step, total, warmup=cfg.warmup_steps, schedule=cfg.lr_schedule, floor=0.1)

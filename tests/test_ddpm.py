@@ -291,8 +291,10 @@ def test_v_prediction_trains_under_its_own_key_and_is_saved_with_it(cfg, scans, 
     assert stage.model_key(vcfg, run, reps["bev"], 0, data) != stage.model_key(ecfg, run, reps["bev"], 0, data)
     v = stage.train_model(vcfg, run, reps["bev"], 0, x, data, out=tmp_path, log_fn=print)
     assert v.prediction == "v_prediction"
-    folder = tmp_path / "models" / stage.model_name(run, 0, "v_prediction")
-    assert folder.name.endswith("-v-seed0") and stage.model_name(run, 0, "epsilon") == folder.name.replace("-v-", "-")
+    folder = stage.model_folder(tmp_path, run, 0, "v_prediction")
+    assert folder == tmp_path / "models" / f"{run.representation}-{run.schedule}-{run.embedding}-v" / "seed_0"
+    assert stage.model_name(run, 0, "v_prediction").endswith("-v-seed0")
+    assert stage.model_folder(tmp_path, run, 0, "epsilon").parent.name == folder.parent.name[:-2]
     assert json.loads((folder / "config.json").read_text())["prediction"] == "v_prediction"
     again = stage.train_model(vcfg, run, reps["bev"], 0, x, data, out=tmp_path, log_fn=print)
     assert not again.trained and again.prediction == "v_prediction"

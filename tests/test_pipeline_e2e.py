@@ -270,7 +270,7 @@ def test_ssc_stage_scores_every_method_and_saves_its_networks(project):
     assert ssc["applied_delay_ms"] == [0.0, 100.0] and set(ssc["robustness_miou"]) == set(methods)
     for data in ("oracle", "generated"):
         for name in ("single", "early", "attfuse", "v2xvit"):
-            folder = proj / "artifacts" / "ssc" / "models" / data / f"{name}-seed0"
+            folder = proj / "artifacts" / "ssc" / "models" / data / name / "seed_0"
             assert read_config(folder, "ssc")["config"]["network"] == name and read_weights(folder, "ssc")
     assert sorted(ssc["tables"]["generated"]) == ["attfuse", "early", "late", "v2xvit"] and ssc["skipped"] == {}
     for row in ssc["tables"]["generated"].values():
@@ -352,8 +352,8 @@ def test_fusion_benchmark_trains_every_method_on_oracle_and_generated_cavs(proje
     assert (proj / "reports" / "fusion_pr.png").stat().st_size > 10_000
     assert (proj / "reports" / "fusion_robustness.png").stat().st_size > 10_000
     models = proj / "artifacts" / "fusion" / "models"
-    assert (models / "oracle-late" / "seed0" / "model.safetensors").is_file()
-    assert (models / "oracle-v2xvit" / "seed0" / "config.json").is_file()
+    assert (models / "oracle-late" / "seed_0" / "model.safetensors").is_file()
+    assert (models / "oracle-v2xvit" / "seed_0" / "config.json").is_file()
 
 
 def _task_runs(proj: Path, flow: str) -> dict[str, set[str]]:

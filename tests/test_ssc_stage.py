@@ -231,7 +231,7 @@ def test_generated_cooperators_identical_to_the_true_ones_give_a_ratio_of_one(ro
     for method, row in gen.items():
         assert row["ratio_miou"]["value"] == 1.0 and row["ratio_iou"]["value"] == 1.0, method
         assert row["figures"]["miou"] == results["tables"]["perfect"][method]["figures"]["miou"], method
-    assert (proj / block.out / "models" / "generated" / "attfuse-seed0" / "model.safetensors").is_file()
+    assert (proj / block.out / "models" / "generated" / "attfuse" / "seed_0" / "model.safetensors").is_file()
     metrics = S.metrics_of(results, 1.0)
     assert metrics["targets"]["late_generated_ge_0.85_oracle_miou"] is True
     md = ssc_report.report_markdown(results, block)
@@ -317,13 +317,13 @@ def test_arms_trained_on_spawned_processes_are_the_bytes_of_one_thread_in_proces
     here = tmp_path / "here"
     for arm in ("oracle", "generated"):
         S.train_seed(block, S.training_set(block, proj, arm), weights, 0, here, log=lambda m: None, data_name=arm)
-        for net in ("single-seed0", "attfuse-seed0"):
+        for net in ("single/seed_0", "attfuse/seed_0"):
             a, b = (pooled / arm / net / "model.safetensors").read_bytes(), (here / "models" / arm / net /
                                                                           "model.safetensors").read_bytes()
             assert a == b, (arm, net)
     # the generated arm learns from the ego views only (tiny's generated_views): its own network
-    assert (pooled / "generated" / "single-seed0" / "model.safetensors").read_bytes() != \
-        (pooled / "oracle" / "single-seed0" / "model.safetensors").read_bytes()
+    assert (pooled / "generated" / "single" / "seed_0" / "model.safetensors").read_bytes() != \
+        (pooled / "oracle" / "single" / "seed_0" / "model.safetensors").read_bytes()
 
 
 def test_one_thread_arms_train_here_from_the_sets_the_caller_read(root, tmp_path, monkeypatch):
@@ -358,4 +358,4 @@ def test_one_thread_arms_train_here_from_the_sets_the_caller_read(root, tmp_path
     assert read == ["generated"]
     assert names == ["train-oracle-seed0", "train-generated-seed0"]
     for arm in ("oracle", "generated"):
-        assert (proj / block.out / "models" / arm / "single-seed0" / "model.safetensors").is_file()
+        assert (proj / block.out / "models" / arm / "single" / "seed_0" / "model.safetensors").is_file()

@@ -76,13 +76,13 @@ def test_a_finished_runs_checkpoints_go_and_nothing_else(tmp_path):
     from tasks.training import drop_checkpoints, save_checkpoint
 
     out = tmp_path / "out"
-    run = out / "checkpoints" / "oracle" / "single-seed0" / "key1"
+    run = out / "checkpoints" / "oracle" / "single" / "seed_0" / "key1"
     save_checkpoint(run, 2, {"w": torch.zeros(1)})
     (out / "model.json").parent.mkdir(parents=True, exist_ok=True)
     (out / "model.json").write_text("{}")
     drop_checkpoints(run, up_to=out)
     assert sorted(p.name for p in out.iterdir()) == ["model.json"]
-    mine = out / "checkpoints" / "generated" / "single-seed0" / "key2"
+    mine = out / "checkpoints" / "generated" / "single" / "seed_0" / "key2"
     save_checkpoint(mine, 2, {"w": torch.zeros(1)})
     (mine / "notes.txt").write_text("a user's file")
     drop_checkpoints(mine, up_to=out)
