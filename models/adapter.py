@@ -15,30 +15,27 @@ view's latent (typ's re-simulation-conditioned variant: ``conditions = 2``).
 from __future__ import annotations
 
 import torch
-from diffusers import T2IAdapter
+from diffusers import ConfigMixin, ModelMixin, T2IAdapter
+from diffusers.configuration_utils import register_to_config
 from torch import nn
 
 
-class ZeroAdapter(nn.Module):
+class ZeroAdapter(ModelMixin, ConfigMixin):
     """T2I-Adapter + zero-initialised 1x1 output convolutions; returns one map per UNet level."""
 
+    config_name = "config.json"   # diffusers' save_pretrained / from_pretrained
+
+    @register_to_config
     def __init__(self, *, latent_channels: int, channels: tuple[int, ...], num_res_blocks: int = 1, conditions: int = 1):
         """latent_channels: c_x; channels: the UNet's block widths (one residual per level);
         num_res_blocks: residual blocks per adapter level; conditions: latents stacked as input."""
         super().__init__()
-        self.config = {"latent_channels": latent_channels, "channels": list(channels),
-                       "num_res_blocks": num_res_blocks, "conditions": conditions}
         self.adapter = T2IAdapter(in_channels=latent_channels * conditions, channels=list(channels),
                                   num_res_blocks=num_res_blocks, downscale_factor=1, adapter_type="full_adapter")
         self.zero = nn.ModuleList(nn.Conv2d(c, c, kernel_size=1) for c in channels)
         for conv in self.zero:
             nn.init.zeros_(conv.weight)
             nn.init.zeros_(conv.bias)
-
-    @classmethod
-    def from_config(cls, config: dict) -> "ZeroAdapter":
-        return cls(latent_channels=config["latent_channels"], channels=tuple(config["channels"]),
-                   num_res_blocks=config["num_res_blocks"], conditions=config.get("conditions", 1))
 
     def forward(self, condition: torch.Tensor) -> list[torch.Tensor]:
         """F_c = F_AD(condition): (B, conditions·c_x, h, w) -> [(B, channels[i], h/2^i, w/2^i)]."""

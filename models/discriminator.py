@@ -8,17 +8,21 @@ while E_src chases it.
 from __future__ import annotations
 
 import torch
+from diffusers import ConfigMixin, ModelMixin
+from diffusers.configuration_utils import register_to_config
 from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
 
 
-class LatentDiscriminator(nn.Module):
+class LatentDiscriminator(ModelMixin, ConfigMixin):
     """Four 3×3 conv layers (the last to one channel), LeakyReLU between, one score per map."""
 
+    config_name = "config.json"   # diffusers' save_pretrained / from_pretrained
+
+    @register_to_config
     def __init__(self, *, in_channels: int, width: int = 64):
         """in_channels: c_x of the latents; width: channels of the hidden layers."""
         super().__init__()
-        self.config = {"in_channels": in_channels, "width": width}
         layers: list[nn.Module] = []
         chans = [in_channels, width, width * 2, width * 2]
         for i in range(3):

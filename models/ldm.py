@@ -19,15 +19,19 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from diffusers import UNet2DConditionModel
+from diffusers import ConfigMixin, ModelMixin, UNet2DConditionModel
+from diffusers.configuration_utils import register_to_config
 from torch import nn
 
 from models.time_embedding import FourierTimeEmbedding
 
 
-class LatentDiffusion(nn.Module):
+class LatentDiffusion(ModelMixin, ConfigMixin):
     """ε-prediction UNet on standardised x^f, conditioned on y^f by concatenation."""
 
+    config_name = "config.json"   # diffusers' save_pretrained / from_pretrained
+
+    @register_to_config
     def __init__(self, *, latent_channels: int, cond_channels: int, sample_size: int,
                  block_out_channels: tuple[int, ...] = (32, 64, 64, 64), layers_per_block: int = 1,
                  cross_attention_dim: int = 32, attention_head_dim: int = 8, norm_num_groups: int = 8,
@@ -44,12 +48,6 @@ class LatentDiffusion(nn.Module):
             raise ValueError(f"prediction must be 'epsilon', 'sample' or 'v_prediction', got {prediction!r}")
         if time_embedding not in ("sinusoidal", "fourier"):
             raise ValueError(f"time_embedding must be 'sinusoidal' or 'fourier', got {time_embedding!r}")
-        self.config = {"latent_channels": latent_channels, "cond_channels": cond_channels,
-                       "sample_size": sample_size, "block_out_channels": list(block_out_channels),
-                       "layers_per_block": layers_per_block, "cross_attention_dim": cross_attention_dim,
-                       "attention_head_dim": attention_head_dim, "norm_num_groups": norm_num_groups,
-                       "time_embedding": time_embedding, "self_attention": self_attention, "coordinates": coordinates,
-                       "prediction": prediction}
         levels = len(block_out_channels)
         extra_channels = 3 if coordinates else 0
         self.unet = UNet2DConditionModel(
@@ -70,10 +68,6 @@ class LatentDiffusion(nn.Module):
         self.register_buffer("latent_std", torch.ones(1, latent_channels, 1, 1))
         self.register_buffer("cond_mean", torch.zeros(1, cond_channels, 1, 1))
         self.register_buffer("cond_std", torch.ones(1, cond_channels, 1, 1))
-
-    @classmethod
-    def from_config(cls, config: dict) -> "LatentDiffusion":
-        return cls(**{**config, "block_out_channels": tuple(config["block_out_channels"])})
 
     def set_statistics(self, latents: torch.Tensor, cond: torch.Tensor) -> None:
         """Per-channel mean/std of training x^f (B, c_x, h, w) and y^f (B, c_y, h, w)."""

@@ -15,6 +15,8 @@ voxel network the height channels are the input channels and the output holds
 from __future__ import annotations
 
 import torch
+from diffusers import ConfigMixin, ModelMixin
+from diffusers.configuration_utils import register_to_config
 import torch.nn.functional as F
 from torch import nn
 
@@ -25,23 +27,21 @@ def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
                          nn.Conv2d(cout, cout, 3, padding=1), nn.GroupNorm(groups, cout), nn.SiLU())
 
 
-class SegmentationFeatureNet(nn.Module):
+class SegmentationFeatureNet(ModelMixin, ConfigMixin):
     """Per-pixel logits (B, out_channels, H, W); :meth:`features` gives (B, width·2^(levels-1))."""
 
+    config_name = "config.json"   # diffusers' save_pretrained / from_pretrained
+
+    @register_to_config
     def __init__(self, *, in_channels: int, out_channels: int, width: int = 8, levels: int = 3):
         """in_channels / out_channels: image channels in, logits out; width: channels of the first
         level, doubled at each of the ``levels - 1`` stride-2 steps (H and W must divide by 2^(levels-1))."""
         super().__init__()
-        self.config = {"in_channels": in_channels, "out_channels": out_channels, "width": width, "levels": levels}
         widths = [width * 2 ** i for i in range(levels)]
         self.down = nn.ModuleList([_block(in_channels, widths[0])] +
                                   [_block(widths[i - 1], widths[i], stride=2) for i in range(1, levels)])
         self.up = nn.ModuleList([_block(widths[i] + widths[i - 1], widths[i - 1]) for i in range(levels - 1, 0, -1)])
         self.head = nn.Conv2d(widths[0], out_channels, 1)
-
-    @classmethod
-    def from_config(cls, config: dict) -> "SegmentationFeatureNet":
-        return cls(**config)
 
     @property
     def feature_dim(self) -> int:

@@ -15,7 +15,8 @@ pixel, at a fraction of the cost on a CPU. ``(1, 1)`` is the plain pixel U-Net.
 from __future__ import annotations
 
 import torch
-from diffusers import UNet2DModel
+from diffusers import ConfigMixin, ModelMixin, UNet2DModel
+from diffusers.configuration_utils import register_to_config
 from torch import nn
 
 from models.time_embedding import FourierTimeEmbedding
@@ -36,9 +37,12 @@ def unfold(x: torch.Tensor, ph: int, pw: int) -> torch.Tensor:
     return x.view(b, c, ph, pw, h, w).permute(0, 1, 4, 2, 5, 3).reshape(b, c, h * ph, w * pw)
 
 
-class PixelDiffusion(nn.Module):
+class PixelDiffusion(ModelMixin, ConfigMixin):
     """ε-prediction U-Net on (B, channels, height, width) images in [-1, 1]."""
 
+    config_name = "config.json"   # diffusers' save_pretrained / from_pretrained
+
+    @register_to_config
     def __init__(self, *, channels: int, height: int, width: int, patch: tuple[int, int] = (1, 1),
                  block_out_channels: tuple[int, ...] = (32, 64, 64), layers_per_block: int = 1,
                  norm_num_groups: int = 8, dropout: float = 0.1, time_embedding: str = "sinusoidal",
@@ -58,10 +62,6 @@ class PixelDiffusion(nn.Module):
         if height % ph or width % pw or (height // ph) % factor or (width // pw) % factor:
             raise ValueError(f"image {height}x{width} with patch {ph}x{pw} does not fold into a size "
                              f"divisible by {factor} (= 2^(levels - 1))")
-        self.config = {"channels": channels, "height": height, "width": width, "patch": [ph, pw],
-                       "block_out_channels": list(block_out_channels), "layers_per_block": layers_per_block,
-                       "norm_num_groups": norm_num_groups, "dropout": dropout, "time_embedding": time_embedding,
-                       "harmonics": harmonics, "coordinates": coordinates}
         self.patch = (ph, pw)
         extra = 2 if coordinates else 0
         rows = torch.linspace(-1.0, 1.0, height).view(1, 1, height, 1).expand(1, 1, height, width)
@@ -75,11 +75,6 @@ class PixelDiffusion(nn.Module):
             norm_num_groups=norm_num_groups, dropout=dropout)
         if time_embedding == "fourier":
             self.unet.time_proj = FourierTimeEmbedding(dim=block_out_channels[0], harmonics=harmonics)
-
-    @classmethod
-    def from_config(cls, config: dict) -> "PixelDiffusion":
-        return cls(**{**config, "patch": tuple(config["patch"]),
-                      "block_out_channels": tuple(config["block_out_channels"])})
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond=None, adapter_features=None) -> torch.Tensor:
         """ε̂ for x_t (B, C, H, W) at timesteps t (B,). ``cond`` and ``adapter_features`` are

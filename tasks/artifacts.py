@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 import torch
 from torch import nn
@@ -45,14 +45,17 @@ _DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I1
 M = TypeVar("M", bound=nn.Module)
 
 
-def save_module(folder: Path, module: nn.Module, config: dict, **extra: Any) -> Path:
-    """Write ``module``'s state dict and ``{"config": config, **extra}`` under ``folder``."""
+def save_module(folder: Path, module: nn.Module, config: Mapping, **extra: Any) -> Path:
+    """Write ``module``'s state dict and ``{"config": config, **extra}`` under ``folder``.
+
+    config: the module's constructor arguments, e.g. a diffusers ``ConfigMixin``'s ``config``
+    (its private ``_``-keys, such as ``_use_default_values``, are not written)."""
     from safetensors.torch import save
 
     # a copy per tensor: safetensors refuses tensors that share memory (tied weights, views)
     state = {k: v.detach().cpu().clone().contiguous() for k, v in module.state_dict().items()}
     write_bytes(folder / WEIGHTS, save(state))
-    write_json(folder / CONFIG, {"config": config, **extra})
+    write_json(folder / CONFIG, {"config": {k: v for k, v in config.items() if not k.startswith("_")}, **extra})
     return folder
 
 
