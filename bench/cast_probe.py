@@ -20,9 +20,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipelines.pipeline_typ import TYPPipeline  # noqa: E402
 from tasks import evaluate_generation as gen, genscore  # noqa: E402
 from tasks.generate import EGO_CAR_LWH  # noqa: E402
-from tasks.pipeline import TYPPipeline  # noqa: E402
 from tasks.selftrain import generator_dir  # noqa: E402
 from tasks.stage2 import own_car_box  # noqa: E402
 from typ import castview  # noqa: E402

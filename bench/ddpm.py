@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from bench.report import machine, machine_line
 
-    from tasks.artifacts import WEIGHTS
+    from typ.artifacts import WEIGHTS
     from tasks.stage1 import replica_dir
     from typ.config import config_from_dict
 

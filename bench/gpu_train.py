@@ -25,9 +25,9 @@ from typing import Callable
 import numpy as np
 import torch
 
+from pipelines.pipeline_typ import PointStats, TYPPipeline, occupancy_to_points
 from tasks import adapt, genscore, selftrain, stage1, stage2, vqvae
 from tasks.evaluate import intervals_json
-from tasks.pipeline import PointStats, TYPPipeline, occupancy_to_points
 from tasks.training import steps_for
 from typ.voxel import Grid
 

@@ -19,7 +19,7 @@ from flows import stages as registry
 from typ.io import write_text
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("typ", "tasks", "models", "flows")
+PACKAGES = ("typ", "tasks", "models", "pipelines", "flows")
 #: sub-packages a stage uses whole: declared as one folder dep
 FOLDERS = ("typ/sim", "typ/formats", "typ/sensors")
 HEADER = """\

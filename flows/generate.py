@@ -7,9 +7,9 @@ from pathlib import Path
 from prefect import flow
 
 from flows.common import per_scene_stage
+from pipelines.pipeline_typ import TYPPipeline
 from tasks import generate as stage
 from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
-from tasks.pipeline import TYPPipeline
 from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError

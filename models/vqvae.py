@@ -172,3 +172,8 @@ class PooledBoxMap(nn.Module):
 
     def encode_pre_quant(self, y: torch.Tensor) -> torch.Tensor:
         return torch.nn.functional.avg_pool2d(y, self.downsample)
+
+
+def build_from_config(config: dict) -> BEVVQVAE | PooledBoxMap:
+    """The encoder a saved config describes: a VQ-VAE, or the pooled box map (``kind: pool``)."""
+    return PooledBoxMap.from_config(config) if config.get("kind") == "pool" else BEVVQVAE.from_config(config)

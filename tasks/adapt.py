@@ -12,7 +12,7 @@ element, the commitment a mean over latent elements), so they keep Eq. 1's relat
 losses are plain functions of the networks and a batch (:func:`discriminator_loss`,
 :func:`generator_loss`, :func:`batch_accuracy`).
 Output: ``<out>/source_vq/`` (E_src, Q_tgt, G_src as one BEVVQVAE) and
-``<out>/discriminator/``, each config.json + model.safetensors (:mod:`tasks.artifacts`). A NaN/Inf loss or a discriminator loss beyond
+``<out>/discriminator/``, each config.json + model.safetensors (:mod:`typ.artifacts`). A NaN/Inf loss or a discriminator loss beyond
 ``max_disc_loss`` stops the stage before any model file is written.
 """
 from __future__ import annotations
@@ -28,12 +28,12 @@ import torch
 from models.discriminator import LatentDiscriminator
 from models.losses import commitment_loss, hinge_d_loss, hinge_g_loss
 from models.vqvae import BEVVQVAE, reconstruction_loss
-from tasks.artifacts import save_module
 from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop,
                             seed_everything, steps_for)
 from tasks.voxel_data import ViewSet
 from tasks.vqvae import save_model as save_vqvae
 from typ import distributed
+from typ.artifacts import save_module
 from typ.config import AdaptConfig, as_dict
 from typ.io import hash_obj
 from typ.metrics.bev import jsd_bev, mmd_bev

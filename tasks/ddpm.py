@@ -13,7 +13,7 @@ sampler; generated images go back to points, which are what every metric compare
   Salimans & Ho: the same minimiser, with more weight where x_0 is hard to read from x_t), AdamW,
   mirrored copies of every image (y -> -y), batches a pure function of (seed, step)
   (:func:`tasks.training.run_loop`: resumable, a NaN loss stops with the last good checkpoint).
-  Weights: ``<out>/models/<name>/`` as :mod:`tasks.artifacts` writes them (the config with the
+  Weights: ``<out>/models/<name>/`` as :mod:`typ.artifacts` writes them (the config with the
   run key: a model whose key matches is loaded, not retrained).
 - Sampling: :func:`models.samplers.sample` with a stock diffusers scheduler on the model's
   own β and ``prediction_type``; the generated set of a (model, sampler, steps) is cached under ``<out>/samples/``.
@@ -33,24 +33,24 @@ import models.pixel_ddpm
 import models.samplers
 import models.schedules
 import models.time_embedding
-import tasks.artifacts
+import typ.artifacts
 from models.pixel_ddpm import PixelDiffusion
 from models.registry import SAMPLERS
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
-from tasks.artifacts import load_if_key, save_module
 from tasks.ddpm_data import (BevRepresentation, RangeRepresentation, Representation, Scan, data_key,  # noqa: F401
                              load_scans, pixel_set, representations, unlabelled)
 from tasks.training import (Trainings, batch_rng, grad_norm, noised_batch, prediction_target, run_checkpoint_dir,
                             run_loop, seed_dir, seed_everything)
 from typ import distributed
+from typ.artifacts import load_if_key, save_module
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
 from typ.io import atomic_path, code_digest, hash_obj
 
 STAGE = "ddpm"
-#: the code a trained model / a generated set depends on: part of their cache keys (tasks.artifacts:
+#: the code a trained model / a generated set depends on: part of their cache keys (typ.artifacts:
 #: the saved folder's layout, so that a folder in an older layout is retrained, not misread)
-_MODEL_CODE = code_digest(models.pixel_ddpm, models.time_embedding, models.schedules, tasks.artifacts)
+_MODEL_CODE = code_digest(models.pixel_ddpm, models.time_embedding, models.schedules, typ.artifacts)
 _SAMPLER_CODE = code_digest(models.samplers)
 #: samples drawn per reverse-process call (bounds memory at paper scale)
 SAMPLE_BATCH = 32

@@ -8,7 +8,7 @@ are, so an edit changes what it names and nothing else.
 
 What the footprint cells get (``compose``, as ``generate.compose``):
 
-- ``generated``: points drawn in the generated voxels (:func:`tasks.pipeline.occupancy_to_points`);
+- ``generated``: points drawn in the generated voxels (:func:`pipelines.pipeline_typ.occupancy_to_points`);
 - ``cast``: a scan of the view's own LiDAR (:mod:`typ.castview`): one scene of the view's
   surfels, the generated cells of the footprints standing on the road, and the added or moved
   vehicles as boxes, cast once from the view's sensor; the returns in the footprint cells are
@@ -146,7 +146,7 @@ def cast_footprint(points: np.ndarray, occupancy: np.ndarray, footprint: np.ndar
     """(M, 4) float32: the sensor's returns in the ``footprint`` cells of one scene made of the
     view's ``points`` as surfels, the generated ``occupancy`` of the footprint, and ``boxes``
     (the added and moved vehicles), with intensities drawn as the generated points'."""
-    from tasks.pipeline import draw_intensities
+    from pipelines.pipeline_typ import draw_intensities
     from tasks.stage2 import own_car_box
     from typ.castview import cast as cast_rays, scene_model
 

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from models.registry import GENERATION_METHODS
+from pipelines.pipeline_typ import TYPPipeline
 from tasks import genscore, realism, stage1, stage2
 from tasks.pairs import iter_pairs
-from tasks.pipeline import TYPPipeline
 from tasks.selftrain import base_pipeline, resim_variant, variant_of, variants_to_run
 from typ.metrics.intervals import Interval
 from typ.resim import coverage_mask, hybrid, hybrid_points
@@ -136,7 +136,7 @@ def pipelines(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> dict[str, T
             out[v.name] = base.with_adapter(stage2.load_adapter(folder / v.name, "selftrain"))
     one = stage1.replica_dir(root / cfg.stage2.out, seed) / "one_stage"
     if (one / "unet" / "config.json").is_file():
-        from tasks.artifacts import load_module
+        from typ.artifacts import load_module
         from models.ldm import LatentDiffusion
 
         unet, meta = load_module(one / "unet", LatentDiffusion.from_config, "stage2")

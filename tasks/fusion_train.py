@@ -31,11 +31,11 @@ from models.box_coder import AnchorBoxCoder
 from models.detection_loss import DetectionLoss
 from models.fusion import METHODS, FusionModule, build, get_method
 from models.pointpillars import PointPillars
-from tasks.artifacts import load_module, save_module
 from tasks.fusion_batch import Inputs, draw_similarity
 from tasks.training import (batch_rng, grad_norm, learning_rate, run_checkpoint_dir, run_loop, seed_everything,
                             set_learning_rate)
 from typ import distributed
+from typ.artifacts import load_module, save_module
 from typ.config import DetectorConfig, FusionConfig, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj

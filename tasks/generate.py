@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tasks.pipeline import TYPPipeline
+from pipelines.pipeline_typ import TYPPipeline
 from typ.config import COMPOSE, CastConfig, GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
@@ -172,11 +172,11 @@ def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: 
                     sensor=None, compose: str = "generated", cast: CastConfig = CastConfig()) -> list[np.ndarray]:
     """Batched sampling for all references of a scenario: (N, 4) float32 clouds in each
     reference's sensor frame (``grid``: that sensor's grid), with the domain's point density
-    and intensity (:func:`tasks.pipeline.occupancy_to_points`). ``sensor``: the reference
+    and intensity (:func:`pipelines.pipeline_typ.occupancy_to_points`). ``sensor``: the reference
     sensor (SensorSpec) re-simulation and cast views cast with (:func:`needs_sensor`); the
     points typ casts get intensities drawn as the generated ones. ``compose``, ``cast``: what a
     view is made of (:class:`typ.config.GenerateConfig`)."""
-    from tasks.pipeline import draw_intensities
+    from pipelines.pipeline_typ import draw_intensities
     from tasks.stage2 import own_car_box, resimulated_points, threaded_map
     from typ.resim import coverage_mask, hybrid_points
 

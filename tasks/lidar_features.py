@@ -7,7 +7,7 @@
 
 Both learn from the simulator's per-point labels (``AgentView.semantics``) of the training
 split; the held-out split's mIoU goes to the report so a reader can see the features mean
-something. Output: ``<out>/features/{range,voxel}/`` as :mod:`tasks.artifacts` writes them (the config
+something. Output: ``<out>/features/{range,voxel}/`` as :mod:`typ.artifacts` writes them (the config
 holds the run key; a matching key is loaded instead of retrained) and resumable checkpoints
 under ``<out>/checkpoints/features-<kind>/<key>/``.
 """
@@ -22,12 +22,12 @@ import torch
 import torch.nn.functional as F
 
 import models.lidar_features
-import tasks.artifacts
+import typ.artifacts
 import typ.projection
 from models.lidar_features import SegmentationFeatureNet
-from tasks.artifacts import load_if_key, save_module
 from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything
 from typ import distributed
+from typ.artifacts import load_if_key, save_module
 from typ.config import FeatureNetConfig, as_dict
 from typ.io import code_digest, hash_obj
 from typ.projection import RangeLayout, range_image, to_unit, voxel_indices
@@ -38,9 +38,9 @@ IGNORE = 255
 NUM_CLASSES = len(SEMANTIC_CLASSES)
 KINDS = ("range", "voxel")
 STAGE = "ddpm"
-#: part of the run key (tasks.artifacts: the saved folder's layout, so that a folder in an older
+#: part of the run key (typ.artifacts: the saved folder's layout, so that a folder in an older
 #: layout is retrained, not misread)
-_CODE = code_digest(models.lidar_features, typ.projection, tasks.artifacts)
+_CODE = code_digest(models.lidar_features, typ.projection, typ.artifacts)
 
 
 def range_input(points: np.ndarray, layout: RangeLayout) -> np.ndarray:

@@ -73,7 +73,7 @@ def load_feature_nets(folder: Path):
     """The FRID / FPVD networks the ``ddpm`` stage saved under ``folder`` (``features/``), or the
     reason they cannot be used (a str)."""
     from models.lidar_features import SegmentationFeatureNet
-    from tasks.artifacts import CONFIG, load_module
+    from typ.artifacts import CONFIG, load_module
     from tasks.lidar_features import FeatureNets
     from typ.voxel import Grid
 

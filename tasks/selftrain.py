@@ -15,7 +15,7 @@ TYP Table 4's ablation is one params change. The UNet stays frozen throughout. T
 recipe enhances the re-simulation-conditioned adapter (``typ_resim``) when stage 2 trained
 one: its pseudo references and dummy egos carry re-simulated views too (an empty one for the
 dummy ego). Adapters go to ``<out>/seed_<s>/<variant>/``; the generator ``generate`` uses, a
-:class:`tasks.pipeline.TYPPipeline`, to ``<out>/generator/seed_<s>/``.
+:class:`pipelines.pipeline_typ.TYPPipeline`, to ``<out>/generator/seed_<s>/``.
 """
 from __future__ import annotations
 
@@ -28,8 +28,8 @@ from typing import Callable
 import numpy as np
 import torch
 
+from pipelines.pipeline_typ import PointStats, TYPPipeline, point_statistics
 from tasks import generate, stage1, stage2
-from tasks.pipeline import PointStats, TYPPipeline, point_statistics
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
 from tasks.training import Trainings, seed_dir
@@ -191,7 +191,7 @@ def base_pipeline(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> TYPPipe
 class Inputs:
     """What self-training learns from, gathered once for every replica and variant (:func:`gather`):
     stage 2's source tuples, the pseudo references, the target's ego views as dummy-ego tuples,
-    and the target's point statistics (the generator's :class:`tasks.pipeline.PointStats`)."""
+    and the target's point statistics (the generator's :class:`pipelines.pipeline_typ.PointStats`)."""
 
     tuples: Tuples
     references: References

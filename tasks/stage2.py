@@ -31,13 +31,13 @@ import torch
 from models.adapter import ZeroAdapter
 from models.ldm import LatentDiffusion
 from models.schedules import alphas_cumprod, betas
-from tasks.artifacts import load_module, save_module
 from tasks.pairs import Pair
 from tasks.stage1 import train_views
 from tasks.training import (EMA, Trainings, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
                             run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
 from tasks.voxel_data import apply_dihedral
 from typ import distributed
+from typ.artifacts import load_module, save_module
 from typ.config import as_dict
 from typ.errors import TypError
 from typ.io import hash_obj

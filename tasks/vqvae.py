@@ -2,7 +2,7 @@
 
 Trained on the target domain's ego views only; reconstruction IoU/precision/recall on the
 held-out split go to the stage metrics. Output per model (``<out>/x``, ``<out>/y``):
-``config.json`` + ``model.safetensors`` (:mod:`tasks.artifacts`, written atomically once
+``config.json`` + ``model.safetensors`` (:mod:`typ.artifacts`, written atomically once
 training finished) and
 ``checkpoints/<run key>/step_*.pt`` (resume points; a changed config or data starts a new key).
 """
@@ -14,11 +14,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from models.vqvae import BEVVQVAE, PooledBoxMap
-from tasks.artifacts import load_module, save_module
+from models.vqvae import BEVVQVAE, PooledBoxMap, build_from_config
 from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
 from tasks.voxel_data import ViewSet
 from typ import distributed
+from typ.artifacts import load_module, save_module
 from typ.config import AutoencoderConfig, VQVAEStageConfig, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj
@@ -86,12 +86,8 @@ def train_one(kind: str, cfg: VQVAEStageConfig, views: ViewSet, *, out: Path,
 
 
 def save_model(model: BEVVQVAE | PooledBoxMap, folder: Path) -> None:
-    """``folder/model.safetensors`` + ``folder/config.json`` (:mod:`tasks.artifacts`)."""
+    """``folder/model.safetensors`` + ``folder/config.json`` (:mod:`typ.artifacts`)."""
     save_module(folder, model, model.config)
-
-
-def build_from_config(config: dict) -> BEVVQVAE | PooledBoxMap:
-    return PooledBoxMap.from_config(config) if config.get("kind") == "pool" else BEVVQVAE.from_config(config)
 
 
 def load_model(folder: Path, stage: str = "vqvae") -> BEVVQVAE | PooledBoxMap:

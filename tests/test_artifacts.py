@@ -1,10 +1,10 @@
-"""Module folders (tasks.artifacts): the round trip, and reuse by run key (ddpm, its feature nets)."""
+"""Module folders (typ.artifacts): the round trip, and reuse by run key (ddpm, its feature nets)."""
 import json
 
 import pytest
 import torch
 
-from tasks.artifacts import load_if_key, load_module, save_module
+from typ.artifacts import load_if_key, load_module, save_module
 from typ.errors import TypError
 
 

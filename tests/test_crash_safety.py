@@ -217,7 +217,7 @@ def test_rerun_after_kill_equals_uninterrupted_byte_for_byte(reference, crashed,
 
 
 def test_killed_training_resumes_to_the_uninterrupted_model(reference, crashed):
-    from tasks.artifacts import read_weights
+    from typ.artifacts import read_weights
     from tasks.training import checkpoints
 
     root, seen = crashed
@@ -273,7 +273,7 @@ def test_metrics_are_identical_but_for_timings(two_runs, stage):
 def test_trained_weights_are_identical(two_runs):
     import torch
 
-    from tasks.artifacts import read_config, read_weights
+    from typ.artifacts import read_config, read_weights
 
     for kind in ("x", "y"):
         a, b = (root / "artifacts" / "vqvae" / kind for root in two_runs)

@@ -26,10 +26,10 @@ import pytest
 import torch
 
 from bench_modules import load_bench
+from pipelines.pipeline_typ import PointStats, TYPPipeline
 from tasks import adapt, ddpm, fusion_train, selftrain, ssc, stage1, stage2, vqvae
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset
-from tasks.pipeline import PointStats, TYPPipeline
 from tasks.voxel_data import ViewSet
 from typ import distributed
 from typ.config import config_from_dict

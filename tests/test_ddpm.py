@@ -187,7 +187,7 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     assert not again.trained
     for k, v in first.model.state_dict().items():
         assert torch.equal(v, again.model.state_dict()[k])
-    # tasks.artifacts' layout: what rebuilds the model under "config", the run's fields beside it
+    # typ.artifacts' layout: what rebuilds the model under "config", the run's fields beside it
     folder = tmp_path / "a" / "models" / stage.model_name(run, 0, cfg.prediction)
     saved = json.loads((folder / "config.json").read_text())
     assert saved["config"] == first.model.config and saved["key"] == first.key

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from tasks import adapt, fusion_train, pipeline, stage1, stage2, vqvae
+from pipelines import pipeline_typ as pipeline
+from tasks import adapt, fusion_train, stage1, stage2, vqvae
 from tasks.fusion_batch import Inputs
 from tasks.training import state_of
 from tasks.voxel_data import ViewSet

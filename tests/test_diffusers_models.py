@@ -12,7 +12,7 @@ from models.discriminator import LatentDiscriminator
 from models.ldm import LatentDiffusion
 from models.lidar_features import SegmentationFeatureNet
 from models.pixel_ddpm import PixelDiffusion
-from tasks.artifacts import load_module, save_module
+from typ.artifacts import load_module, save_module
 
 
 def _ldm():

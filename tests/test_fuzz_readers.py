@@ -293,7 +293,7 @@ def _module(config: dict):
 
 
 def safetensors_read(path: Path) -> dict:
-    from tasks.artifacts import load_module
+    from typ.artifacts import load_module
 
     module, _ = load_module(path.parent, _module, "fuzz")
     return {k: v.tolist() for k, v in module.state_dict().items()}

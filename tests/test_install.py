@@ -25,7 +25,7 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("typ", "cli", "flows", "tasks", "models")
+PACKAGES = ("typ", "cli", "flows", "tasks", "models", "pipelines")
 #: imported by typ, deliberately not a declared dependency (the reason)
 OPTIONAL = {"waymo_open_dataset": "installed with --no-deps: its declared dependencies pull TensorFlow"}
 SLOW = bool(os.environ.get("TYP_SLOW"))
@@ -86,10 +86,10 @@ def test_every_third_party_import_is_declared():
 
 
 def test_layers_import_one_way():
-    """typ and models never import flows, tasks or the CLI; tasks never import flows or the CLI;
-    flows never import the CLI."""
-    above = {"typ": {"flows", "tasks", "cli"}, "models": {"flows", "tasks", "cli"}, "tasks": {"flows", "cli"},
-             "flows": {"cli"}}
+    """typ and models never import pipelines, flows, tasks or the CLI; pipelines never import
+    tasks, flows or the CLI; tasks never import flows or the CLI; flows never import the CLI."""
+    above = {"typ": {"pipelines", "flows", "tasks", "cli"}, "models": {"pipelines", "flows", "tasks", "cli"},
+             "pipelines": {"flows", "tasks", "cli"}, "tasks": {"flows", "cli"}, "flows": {"cli"}}
     for package, forbidden in above.items():
         assert not _imports(package) & forbidden, f"{package} imports {_imports(package) & forbidden}"
     entry = _pyproject()["project"]["scripts"]["typ"]

@@ -146,7 +146,7 @@ def _all_occupied_iou(occupancy: np.ndarray) -> float:
 def test_training_stages_write_models_and_metrics(project):
     import torch
 
-    from tasks.pipeline import TYPPipeline
+    from pipelines.pipeline_typ import TYPPipeline
     from tasks.selftrain import TABLE4, generator_dir
     from tasks.stage1 import load_model as load_stage1
     from tasks.stage2 import load_adapter
@@ -256,7 +256,7 @@ def test_evaluate_scores_every_method_with_intervals_and_renders_a_gallery(proje
 
 
 def test_ssc_stage_scores_every_method_and_saves_its_networks(project):
-    from tasks.artifacts import read_config, read_weights
+    from typ.artifacts import read_config, read_weights
 
     proj, _, _ = project
     ssc = json.loads((proj / "metrics" / "ssc.json").read_text())
@@ -535,7 +535,7 @@ def test_show_renders_generated_agents_beside_their_true_views(project, tmp_path
 
 
 def test_ddpm_stage_writes_its_table_models_and_report(project):
-    from tasks.artifacts import read_config, read_weights
+    from typ.artifacts import read_config, read_weights
 
     proj, _, _ = project
     dd = json.loads((proj / "metrics" / "ddpm.json").read_text())

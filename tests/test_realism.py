@@ -127,7 +127,7 @@ def test_missing_feature_networks_are_a_reason_and_saved_ones_load(tmp_path):
     import torch
 
     from models.lidar_features import SegmentationFeatureNet
-    from tasks.artifacts import save_module
+    from typ.artifacts import save_module
     from typ.voxel import Grid
 
     reason = realism.load_feature_nets(tmp_path / "features")

@@ -47,7 +47,7 @@ class _GroundPipe:
 
     @property
     def point_stats(self):
-        from tasks.pipeline import PointStats
+        from pipelines.pipeline_typ import PointStats
 
         return PointStats.single()
 
@@ -58,7 +58,7 @@ class _GroundPipe:
         return occ
 
     def points(self, occupancy, grid, seed):
-        from tasks.pipeline import PointStats, occupancy_to_points
+        from pipelines.pipeline_typ import PointStats, occupancy_to_points
 
         return occupancy_to_points(occupancy, grid, PointStats.single(), np.random.default_rng(seed))
 

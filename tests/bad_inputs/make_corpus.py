@@ -1265,7 +1265,7 @@ def _(d):
 
 @case("artifact", "detector_corrupt_config", "unknown", needs="torch")
 def _(d):
-    from tasks.artifacts import load_module
+    from typ.artifacts import load_module
 
     (d / "early").mkdir()
     (d / "early" / "config.json").write_text('{"config": {"method": "early", ')  # cut off mid-write
@@ -1302,7 +1302,7 @@ def _(d):
     import json as json_
 
     from models.vqvae import PooledBoxMap
-    from tasks.pipeline import TYPPipeline
+    from pipelines.pipeline_typ import TYPPipeline
 
     grid = Grid((-6.4, 6.4), (-6.4, 6.4), (-0.75, 3.25), (16, 16, 4))
     pipe = TYPPipeline(_tiny_vqvae(), PooledBoxMap(downsample=2), _tiny_unet(), None, grid, "linear", 1000, "ddim",
@@ -1697,7 +1697,7 @@ def _generator(d: Path, **changes) -> Probe:
     import json as json_
 
     from models.vqvae import PooledBoxMap
-    from tasks.pipeline import TYPPipeline
+    from pipelines.pipeline_typ import TYPPipeline
 
     grid = Grid((-6.4, 6.4), (-6.4, 6.4), (-0.75, 3.25), (16, 16, 4))
     pipe = TYPPipeline(_tiny_vqvae(), PooledBoxMap(downsample=2), _tiny_unet(), None, grid, "linear", 1000, "ddim",

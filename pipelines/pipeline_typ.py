@@ -14,7 +14,7 @@ them; its residuals point the right way but are too small to move the frozen UNe
 (reports/generation_ablation.md measures the scale).
 
 ``save_pretrained(dir)`` writes one sub-folder per component (``model.safetensors`` +
-``config.json``, :mod:`tasks.artifacts`) and ``pipeline.json``; ``from_pretrained(dir)`` reads
+``config.json``, :mod:`typ.artifacts`) and ``pipeline.json``; ``from_pretrained(dir)`` reads
 them back with a named error for anything missing or damaged. Someone who receives a trained
 typ generator runs it in three lines::
 
@@ -40,9 +40,9 @@ from models.ldm import LatentDiffusion
 from models.postprocess import postprocess
 from models.samplers import SCHEDULERS, make_scheduler, sample
 from models.schedules import SCHEDULES, betas
-from tasks.artifacts import load_module, save_module
-from tasks.vqvae import build_from_config as build_encoder
+from models.vqvae import build_from_config as build_encoder
 from typ import distributed
+from typ.artifacts import load_module, save_module
 from typ.errors import TypError
 from typ.io import read_json_or_none, write_json
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
