@@ -53,7 +53,7 @@ from tasks.training import Trainings
 from typ.config import SscConfig
 from typ.errors import TypError
 from typ.metrics.intervals import bootstrap
-from typ.metrics.ssc import SSC_CLASSES, ssc_confusion, ssc_scores
+from typ.metrics.ssc import SSC_CLASSES, figure_of, ssc_confusion, ssc_scores
 from typ.ssc import SSC_GRID
 # the stage's data and training, re-exported: ``tasks.ssc`` is the stage's one module for its callers
 from tasks.ssc_data import (DISPLAY, FOOTPRINT_CELLS, IGNORE, STAGE, TrainingSet, footprint,  # noqa: F401
@@ -107,13 +107,6 @@ def confusions(nets: SscNetworks, ds: FusionDataset, method: str, *, bits: int |
         conf[ds.index[i][0]] += ssc_confusion(pred, ego_map(ds, i, sample), N_CLASSES)
         ages += [100.0 * float(d) for d in sample.time_delay[1:]]
     return conf, {"frames": len(ds), "applied_delay_ms": float(np.mean(ages)) if ages else 0.0}
-
-
-def figure_of(scores: dict, name: str) -> float:
-    """One of :data:`FIGURES` from :func:`typ.metrics.ssc_scores`' dict."""
-    if name.startswith("iou_"):
-        return float(scores["iou_per_class"][SSC_CLASSES.index(name[4:]) - 1])
-    return float(scores[name])
 
 
 def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0,

@@ -14,7 +14,7 @@ from tasks.fusion_data import FusionDataset, FusionSample
 from typ.config import SscConfig
 from typ.errors import TypError
 from typ.io import hash_obj
-from typ.metrics.ssc import SSC_CLASSES
+from typ.metrics.ssc import FIGURES as SSC_FIGURES, SSC_CLASSES
 from typ.ssc import SSC_GRID, occupancy_path, read_occupancy
 
 
@@ -23,8 +23,8 @@ STAGE = "ssc"
 NETWORK = {m.name: "single" if m.network == SINGLE_AGENT else m.network for m in METHODS.values()}
 #: display names of the methods, V2VSSC Table I's rows
 DISPLAY = {m.name: m.intermediate_display for m in METHODS.values()}
-#: the figures scored, each with an interval: geometric, semantic and per class
-FIGURES = ("iou", "miou", "ciou", "precision", "recall", *(f"iou_{c}" for c in SSC_CLASSES[1:]))
+#: the figures scored, each with an interval: geometric, semantic and per class (declared in typ.metrics.ssc)
+FIGURES = tuple(SSC_FIGURES)
 N_CLASSES = len(SSC_CLASSES)
 
 

@@ -10,12 +10,13 @@ from models.ssc import SSC_PILLAR
 from tasks.ssc_data import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
 from typ.config import SscConfig
 from typ.io import atomic_path, write_text
-from typ.metrics.ssc import SSC_CLASSES
+from typ.metrics.ssc import FIGURES as SSC_FIGURES, SSC_CLASSES
 from typ.reporting import markdown_table
 
-#: Table I's columns: (figure, header)
-COLUMNS = (("iou", "IoU"), ("miou", "mIoU"), ("ciou", "cIoU"),
-           *((f"iou_{c}", c) for c in SSC_CLASSES[1:]))
+#: Table I's columns: (figure, header), the figures typ.metrics.ssc declares with a header
+COLUMNS = tuple((figure, header) for figure, header in SSC_FIGURES.items() if header)
+#: V2VSSC Table I's columns, in its order
+PAPER_COLUMNS = ("iou", "miou", "ciou", *(f"iou_{c}" for c in SSC_CLASSES[1:]))
 #: V2VSSC Table I (OPV2V-based V2VSSC test set, VoxelNet), in %
 PAPER = {"none": (53.2, 42.2, 60.0, 65.6, 54.4, 48.3, 31.8, 41.2, 12.0),
          "early": (56.1, 45.7, 66.8, 68.8, 64.8, 48.1, 33.1, 42.9, 16.4),
@@ -129,7 +130,7 @@ def report_markdown(results: dict, block: SscConfig) -> str:
         *_generated(results, block),
         "## V2VSSC Table I (OPV2V-based V2VSSC test set, VoxelNet), for reference",
         "",
-        *markdown_table(["method", *(h for _, h in COLUMNS)],
+        *markdown_table(["method", *(SSC_FIGURES[f] for f in PAPER_COLUMNS)],
                         ([DISPLAY[m], *(f"{v:.1f}" for v in PAPER[m])] for m in DISPLAY if m in PAPER)).split("\n"),
         "",
         "## Robustness (Figs. 4–5), first seed",

@@ -16,6 +16,11 @@ SSC_CLASSES: tuple[str, ...] = ("empty", "road", "car", "terrain", "building", "
 SSC_CODE: dict[str, int] = {name: i for i, name in enumerate(SSC_CLASSES)}
 #: V2VSSC's critical objects: cIoU is the mean IoU of these classes.
 CRITICAL_CLASSES: tuple[str, ...] = ("road", "car")
+#: every figure of :func:`ssc_scores` that the ssc stage scores with an interval, in order: name ->
+#: its header in the Table I analogue (None: in the metrics only). A new figure is its value in
+#: ssc_scores' dict and an entry here; ``iou_<class>`` reads the per-class array (:func:`figure_of`).
+FIGURES: dict[str, str | None] = {"iou": "IoU", "miou": "mIoU", "ciou": "cIoU", "precision": None, "recall": None,
+                                  **{f"iou_{c}": c for c in SSC_CLASSES[1:]}}
 
 _WHERE = "ssc_iou"
 
@@ -113,3 +118,10 @@ def ssc_scores(conf: np.ndarray) -> dict:
     return {"iou": ratio(tp_geo, tp_geo + fp_geo + fn_geo), "precision": ratio(tp_geo, tp_geo + fp_geo),
             "recall": ratio(tp_geo, tp_geo + fn_geo), "iou_per_class": per_class,
             "miou": float(per_class.mean()), "ciou": ciou, "confusion": conf}
+
+
+def figure_of(scores: dict, name: str) -> float:
+    """One of :data:`FIGURES` from :func:`ssc_scores`' dict."""
+    if name.startswith("iou_"):
+        return float(scores["iou_per_class"][SSC_CLASSES.index(name[4:]) - 1])
+    return float(scores[name])
