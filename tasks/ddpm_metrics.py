@@ -18,6 +18,7 @@ Intervals: :func:`typ.metrics.intervals.hierarchical_bootstrap` over training se
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from scipy.spatial.distance import jensenshannon
@@ -27,7 +28,6 @@ from typ.metrics import PRESETS, bev_histogram
 from typ.metrics.frechet import frechet_from_features
 from typ.metrics.intervals import hierarchical_bootstrap
 
-METRICS = ("jsd", "mmd", "frid", "fpvd")
 PRESET = "r2dm"
 
 
@@ -72,9 +72,15 @@ def _jsd(real_hist: np.ndarray, gen_hist: np.ndarray) -> float:
     return float(jensenshannon(pa / pa.sum(), pb / pb.sum()))
 
 
-def score(real: SetStats, generated: list[SetStats], *, n_boot: int, seed: int) -> dict:
-    """Each metric's ``[estimate, low, high]`` for ``generated`` (one set per training seed) against
-    ``real``, plus ``spread`` (mean over seeds), ``empty`` (summed) and ``samples`` (per seed)."""
+#: a metric on a resample: ``fn(seed_index, generated scan indices, real scan indices)``
+Resampled = Callable[[int, np.ndarray, np.ndarray], float]
+
+
+def _jsd_of(real: SetStats, generated: list[SetStats]) -> Resampled:
+    return lambda s, gi, ri: _jsd(real.hist[ri], generated[s].hist[gi])
+
+
+def _mmd_of(real: SetStats, generated: list[SetStats]) -> Resampled:
     sigma = PRESETS[PRESET].sigma
     k_rr = _kernel(real.grids, real.grids, sigma)
     k_gg = [_kernel(g.grids, g.grids, sigma) for g in generated]
@@ -82,17 +88,44 @@ def score(real: SetStats, generated: list[SetStats], *, n_boot: int, seed: int) 
 
     def mmd(s, gi, ri):
         return float(k_rr[np.ix_(ri, ri)].mean() + k_gg[s][np.ix_(gi, gi)].mean() - 2.0 * k_rg[s][np.ix_(ri, gi)].mean())
+    return mmd
 
-    metric_fns = {
-        "jsd": lambda s, gi, ri: _jsd(real.hist[ri], generated[s].hist[gi]),
-        "mmd": mmd,
-        "frid": lambda s, gi, ri: frechet_from_features(real.frid[ri], generated[s].frid[gi]),
-        "fpvd": lambda s, gi, ri: frechet_from_features(real.fpvd[ri], generated[s].fpvd[gi]),
-    }
+
+def _frechet_of(features: str) -> Callable[[SetStats, list[SetStats]], Resampled]:
+    def prepare(real: SetStats, generated: list[SetStats]) -> Resampled:
+        return lambda s, gi, ri: frechet_from_features(getattr(real, features)[ri], getattr(generated[s], features)[gi])
+    return prepare
+
+
+@dataclass(frozen=True)
+class SetMetric:
+    """A figure of a generated set against the real one (lower is better): ``prepare(real,
+    generated)`` gives its value on any resample of both; the report prints ``value × scale`` with
+    ``digits`` decimals under ``label``."""
+
+    label: str
+    prepare: Callable[[SetStats, list[SetStats]], Resampled]
+    scale: float = 1.0
+    digits: int = 3
+
+
+#: every figure of a generated set, in the table's order (each bootstrap's seed is ``seed + its
+#: position``). A new figure is one entry here (and its per-scan statistic in :class:`SetStats`).
+METRICS: dict[str, SetMetric] = {
+    "jsd": SetMetric("JSD", _jsd_of),
+    "mmd": SetMetric("MMD ×10⁵", _mmd_of, scale=1e5, digits=1),   # x 10^5, as LiDAR DDPM Table II prints it
+    "frid": SetMetric("FRID†", _frechet_of("frid"), digits=2),
+    "fpvd": SetMetric("FPVD†", _frechet_of("fpvd"), digits=2),
+}
+
+
+def score(real: SetStats, generated: list[SetStats], *, n_boot: int, seed: int) -> dict:
+    """Each metric's ``[estimate, low, high]`` for ``generated`` (one set per training seed) against
+    ``real``, plus ``spread`` (mean over seeds), ``empty`` (summed) and ``samples`` (per seed)."""
     sizes = [len(g) for g in generated]
     out: dict = {}
-    for i, (name, fn) in enumerate(metric_fns.items()):
-        iv = hierarchical_bootstrap(fn, sizes, len(real), n_boot=n_boot, seed=seed + i)
+    for i, (name, metric) in enumerate(METRICS.items()):
+        iv = hierarchical_bootstrap(metric.prepare(real, generated), sizes, len(real), n_boot=n_boot, seed=seed + i)
         out[name] = [iv.value, iv.low, iv.high]
     real_var = np.trace(np.atleast_2d(np.cov(real.frid, rowvar=False)))
     out["spread"] = float(np.mean([np.sqrt(np.trace(np.atleast_2d(np.cov(g.frid, rowvar=False))) / real_var)

@@ -18,9 +18,7 @@ from typ.metrics import PRESETS
 from typ.reporting import markdown_table
 
 FAST_MAX_STEPS = 50
-#: MMD values are printed x 10^5, as LiDAR DDPM Table II does
-MMD_SCALE = 1e5
-LABELS = {"jsd": "JSD", "mmd": "MMD ×10⁵", "frid": "FRID†", "fpvd": "FPVD†"}
+LABELS = {name: metric.label for name, metric in METRICS.items()}
 FEATURE_NOTE = ("† FRID / FPVD are Fréchet distances in the feature spaces of typ's own small range-image and "
                 "voxel segmentation networks, trained on the simulator's point labels (not RangeNet++ / "
                 "MinkowskiNet): they compare rows within typ only, never with the paper's numbers.")
@@ -43,8 +41,7 @@ def _interval(cell, scale: float = 1.0, digits: int = 3) -> str:
 
 
 def _cells(row: dict) -> list[str]:
-    return [_interval(row["jsd"]), _interval(row["mmd"], MMD_SCALE, 1), _interval(row["frid"], digits=2),
-            _interval(row["fpvd"], digits=2)]
+    return [_interval(row[name], metric.scale, metric.digits) for name, metric in METRICS.items()]
 
 
 def _seconds(row: dict) -> str:
@@ -137,7 +134,7 @@ def metrics_of(rows: list[dict], round_trips: dict, feature_scores: dict, models
             "models": models, **context}
 
 
-TABLE_HEAD = ("row", "schedule", "embedding", "sampler", "s/sample", "JSD ↓", "MMD ×10⁵ ↓", "FRID† ↓", "FPVD† ↓",
+TABLE_HEAD = ("row", "schedule", "embedding", "sampler", "s/sample", *(f"{label} ↓" for label in LABELS.values()),
               "spread", "IoU")
 
 
