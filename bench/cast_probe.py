@@ -126,9 +126,9 @@ def real_frames(root: Path) -> None:
     from typ.voxel import points_to_reference
 
     cfg = load_config(root / "params.yaml")
-    print(f"\n| frame set | compose | views | points per view | on beam ±0.05° | within {NEAR_M} m of the ego's "
-          f"surface (seen cells) | ... of an ego return | row profile L1 to the real scan's |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n" + markdown_table(["frame set", "compose", "views", "points per view", "on beam ±0.05°",
+                                 f"within {NEAR_M} m of the ego's surface (seen cells)", "... of an ego return",
+                                 "row profile L1 to the real scan's"], []))
     for fmt, rel in REAL.items():
         if not (DATA / rel).exists():
             print(f"| {fmt} | (not in shared/data) | | | | |")

@@ -96,13 +96,14 @@ def compare(rows: list[dict]) -> list[dict]:
 
 
 def write(rows: list[dict], out: Path, steps: int, batch: int) -> Path:
-    from typ.reporting import subplots
+    from typ.reporting import markdown_table, subplots
 
     lines = ["# Data-parallel training on the CPU (stage 1)", "",
              f"Stage-1 steps of the tiny UNet (block_out_channels {rows[0]['unet']}), global batch {batch}, "
              f"{steps} steps per set-up; {os.cpu_count()} cores. Method: `bench/ddp.py`.", "",
-             "| set-up | s/step | speed-up | max abs param diff |", "|---|---|---|---|"]
-    lines += [f"| {r['setup']} | {r['s_per_step']:.4f} | {r['speedup']:.2f}x | {r['max_dparam']:.1e} |" for r in rows]
+             markdown_table(["set-up", "s/step", "speed-up", "max abs param diff"],
+                            ([r["setup"], f"{r['s_per_step']:.4f}", f"{r['speedup']:.2f}x", f"{r['max_dparam']:.1e}"]
+                             for r in rows))]
     by = {r["setup"]: r for r in rows}
     sharded, whole = by["2 ranks x 1 thread, sharded"], by["2 ranks x 1 thread, whole batch"]
     threads = by["1 process x all cores"]

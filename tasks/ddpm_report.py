@@ -171,11 +171,11 @@ def report(rows: list[dict], *, round_trips: dict, feature_scores: dict, context
              f"JSD / MMD: preset `r2dm` — {PRESETS['r2dm'].convention}", "", FEATURE_NOTE, "",
              "spread: sqrt(tr Σ_gen / tr Σ_real) of the FRID features: 1 = as varied as the held-out scans, "
              "0 = every sample alike.", ""]
-    lines += ["## Targets (the issue's table)", "", "| figure | paper (KITTI-360, Table II) | target here | measured | met |",
-              "|---|---|---|---|---|"]
-    for t in targets(rows):
-        met = "not run" if t["met"] is None else ("yes" if t["met"] else "**no**")
-        lines.append(f"| {t['figure']} | {t['paper']} | {t['target']} | {t['measured']} | {met} |")
+    lines += ["## Targets (the issue's table)", "",
+              markdown_table(["figure", "paper (KITTI-360, Table II)", "target here", "measured", "met"],
+                             ([t["figure"], t["paper"], t["target"], t["measured"],
+                               "not run" if t["met"] is None else ("yes" if t["met"] else "**no**")]
+                              for t in targets(rows)))]
     for rep in reps:
         lines += ["", f"## Table II analogue: {rep} image", ""]
         lines += _table([r for r in rows if r["representation"] == rep and r["route"] != "latent"])
@@ -196,21 +196,20 @@ def report(rows: list[dict], *, round_trips: dict, feature_scores: dict, context
     if not latent:
         lines += ["", "TYP's latent route was not run (`ddpm.latent.samplers` is empty)."]
     lines += ["", "## Round trips of the representations (held-out scans)", "",
-              "| representation | layout | points with a pixel of their own | median error (m) | max error (m) | "
-              "max error / guaranteed bound |", "|---|---|---|---|---|---|"]
-    for rep, stats in round_trips.items():
-        layout = stats["layout"]
-        lines.append(f"| {rep} | {layout} | {stats['points_kept']:.3f} | "
-                     + " | ".join(f"{stats[k]:.4g}" if k in stats else "–"
-                                  for k in ("median_error_m", "max_error_m", "max_error_over_bound")) + " |")
+              markdown_table(["representation", "layout", "points with a pixel of their own", "median error (m)",
+                              "max error (m)", "max error / guaranteed bound"],
+                             ([rep, stats["layout"], f"{stats['points_kept']:.3f}",
+                               *(f"{stats[k]:.4g}" if k in stats else "–"
+                                 for k in ("median_error_m", "max_error_m", "max_error_over_bound"))]
+                              for rep, stats in round_trips.items()))]
     lines += ["", "Range image: a kept point comes back within d·(half beam gap + π/W) (+4e-7·d); the BEV image keeps "
               "the highest point of each cell, at the cell centre (within half a cell in x and y, exact z). Points "
               "sharing a pixel with a nearer (higher) one are not reconstructed; their share is the first column.",
               "", "## Feature networks (FRID / FPVD), held-out mIoU", "",
-              "| network | mIoU | per class |", "|---|---|---|"]
-    for kind, scores in feature_scores.items():
-        per = ", ".join(f"{k} {v:.2f}" for k, v in scores.items() if k != "miou")
-        lines.append(f"| {kind} | {scores['miou']:.3f} | {per} |")
+              markdown_table(["network", "mIoU", "per class"],
+                             ([kind, f"{scores['miou']:.3f}",
+                               ", ".join(f"{k} {v:.2f}" for k, v in scores.items() if k != "miou")]
+                              for kind, scores in feature_scores.items()))]
     lines += ["", f"![generated and real images]({gallery})", ""]
     return "\n".join(lines) + "\n"
 
