@@ -10,11 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 
 from models.registry import METHODS
+from tasks.fusion_score import BANDS as SCORED_BANDS, IOU_THRESHOLDS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
+from typ.reporting import markdown_table
 
-BANDS = (("overall", "all"), ("0-30", "0–30"), ("30-50", "30–50"), ("50-100", "50–100"))
-KEYS = (("ap50", "AP@0.5"), ("ap70", "AP@0.7"))
+#: the range bands and AP figures the scorer declares (tasks.fusion_score), with their headers
+BANDS = tuple((band, "all" if band == "overall" else band.replace("-", "–")) for band in SCORED_BANDS)
+KEYS = tuple((key, f"AP@{threshold:g}") for key, threshold in IOU_THRESHOLDS.items())
 TABLE1_ROWS = {"ego": "ego's gt only", "oracle": "gt (oracle)", "generated": "TYP (generated)"}
 #: ``generate.compose`` values, as the report explains them
 COMPOSE_TEXT = {"generated": "TYP's sample alone",
@@ -117,9 +120,14 @@ def targets(results: dict) -> dict:
     return out
 
 
-def _row(label: str, name: str, cell: dict | None, *, note: str = "") -> str:
+def _row(label: str, name: str, cell: dict | None) -> list[str]:
     cells = [_iv(_value(cell, k, b)) for k, _ in KEYS for b, _ in BANDS] if cell else ["—"] * (len(KEYS) * len(BANDS))
-    return f"| {label} | {name}{note} | " + " | ".join(cells) + " |"
+    return [label, name, *cells]
+
+
+def _first(method: str, i: int) -> str:
+    """A method's name on its first row, blank on the rows below it."""
+    return METHODS[method].display if i == 0 else ""
 
 
 def _signed(c: dict | None) -> str:
@@ -134,20 +142,18 @@ def _global_and_paired(results: dict) -> list[str]:
         lines += ["", "The same networks with the detections of all test frames ranked by score (OpenCOOD's "
                   "`--global_sort_detections`, the mainstream AP; frame order, above, is OpenCOOD's default and "
                   "what the OPV2V, V2V4Real and TYP tables use):", "",
-                  "| Method | Train data | AP@0.5 all, global | AP@0.7 all, global |", "|---|---|---|---|"]
-        for method, row in t1.items():
-            for i, (data, cell) in enumerate(row.items()):
-                lines.append(f"| {METHODS[method].display if i == 0 else ''} | {TABLE1_ROWS[data]} | "
-                             f"{_iv(_value(cell, 'ap50_global'))} | {_iv(_value(cell, 'ap70_global'))} |")
+                  markdown_table(["Method", "Train data", "AP@0.5 all, global", "AP@0.7 all, global"],
+                                 ([_first(method, i), TABLE1_ROWS[data], _iv(_value(cell, "ap50_global")),
+                                   _iv(_value(cell, "ap70_global"))]
+                                  for method, row in t1.items() for i, (data, cell) in enumerate(row.items())))]
     diffs = results.get("differences", {})
     if diffs:
         lines += ["", "Each method's oracle row minus no fusion, AP@0.5, paired: both scored on the same "
                   "resampled test scenarios and seeds, so the scenarios' shared difficulty cancels (an "
                   "interval above 0: the gain is not the luck of the test scenarios):", "",
-                  "| Method | Δ all | Δ 50–100 m | Δ all, global |", "|---|---|---|---|"]
-        for method, d in diffs.items():
-            lines.append(f"| {METHODS[method].display} | {_signed(d['overall'])} | {_signed(d['50-100'])} | "
-                         f"{_signed(d['overall_global'])} |")
+                  markdown_table(["Method", "Δ all", "Δ 50–100 m", "Δ all, global"],
+                                 ([METHODS[method].display, _signed(d["overall"]), _signed(d["50-100"]),
+                                   _signed(d["overall_global"])] for method, d in diffs.items()))]
     return lines
 
 
@@ -177,24 +183,22 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
              *([f"Generated cooperating views: `generate.compose` = {', '.join(results['generated_compose'])} "
                 f"({'; '.join(COMPOSE_TEXT.get(c, c) for c in results['generated_compose'])}).", ""]
                if results.get("generated_compose") else []),
-             "| Method | Train data | " + " | ".join(f"{k} {b}" for _, k in KEYS for _, b in BANDS) + " |",
-             "|---|---|" + "---|" * (len(KEYS) * len(BANDS))]
-    for method, row in t.get("table1", {}).items():
-        for i, (data, cell) in enumerate(row.items()):
-            lines.append(_row(METHODS[method].display if i == 0 else "", TABLE1_ROWS[data], cell))
+             markdown_table(["Method", "Train data", *(f"{k} {b}" for _, k in KEYS for _, b in BANDS)],
+                            (_row(_first(method, i), TABLE1_ROWS[data], cell)
+                             for method, row in t.get("table1", {}).items()
+                             for i, (data, cell) in enumerate(row.items())))]
     lines += _global_and_paired(results)
     sets = results["finetune_sets"]
     for key, title in KEYS:
-        lines += ["", f"## Pre-training and fine-tuning on real_cav (TYP Table 3), {title}", "",
-                  "| Method | Pre-train | " + " | ".join(f"FT {n} sc. {b}" for n in sets.values()
-                                                        for _, b in (BANDS[0], BANDS[3])) + " |",
-                  "|---|---|" + "---|" * (2 * len(sets))]
+        rows3 = []
         for method, rows in t.get("table3", {}).items():
             ordered = sorted(rows.items(), key=lambda kv: list(PRETRAIN).index(kv[0]))
-            for i, (source, cols) in enumerate(ordered):
-                cells = [_iv(_value(cols.get(ft), key, b)) for ft in sets for b in ("overall", "50-100")]
-                lines.append(f"| {METHODS[method].display if i == 0 else ''} | {PRETRAIN[source]} | "
-                             + " | ".join(cells) + " |")
+            rows3 += [[_first(method, i), PRETRAIN[source],
+                       *(_iv(_value(cols.get(ft), key, b)) for ft in sets for b in ("overall", "50-100"))]
+                      for i, (source, cols) in enumerate(ordered)]
+        lines += ["", f"## Pre-training and fine-tuning on real_cav (TYP Table 3), {title}", "",
+                  markdown_table(["Method", "Pre-train", *(f"FT {n} sc. {b}" for n in sets.values()
+                                                           for _, b in (BANDS[0], BANDS[3]))], rows3)]
     d3 = results.get("table3_differences", {})
     if d3:
         pairs = {"colwaymo-scratch": "generated target − scratch", "source-scratch": "source sim − scratch",
@@ -202,12 +206,11 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
         cols = [ft for ft in sets if ft != "0"]
         lines += ["", "Paired differences, AP@0.5 overall (the same resampled test scenarios and seeds on both "
                   "sides; \"A beats B\" where the interval is above 0):", "",
-                  "| Method | Pair | " + " | ".join(f"FT {sets[ft]} sc." for ft in cols) + " |",
-                  "|---|---|" + "---|" * len(cols)]
-        for method, by_pair in d3.items():
-            for i, (pair, label) in enumerate((k, v) for k, v in pairs.items() if k in by_pair):
-                lines.append(f"| {METHODS[method].display if i == 0 else ''} | {label} | "
-                             + " | ".join(_signed(by_pair[pair].get(ft)) for ft in cols) + " |")
+                  markdown_table(["Method", "Pair", *(f"FT {sets[ft]} sc." for ft in cols)],
+                                 ([_first(method, i), label, *(_signed(by_pair[pair].get(ft)) for ft in cols)]
+                                  for method, by_pair in d3.items()
+                                  for i, (pair, label) in enumerate((k, v) for k, v in pairs.items()
+                                                                    if k in by_pair)))]
     lines += ["", "## Targets, measured", ""] + [f"- {k}: {v}" for k, v in targets(results).items()]
     rob = results["robustness"]
     lines += ["", "## Robustness (V2VSSC §IV), AP@0.5 overall / 50–100 m, oracle networks", "",
@@ -215,22 +218,20 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
               f"delay applied (mean message age): {', '.join(f'{v:g} ms' for v in rob['applied_delay_ms'])}.", ""]
     names = {"position_std": "position σ (m)", "heading_std_deg": "heading σ (°)", "delay_ms": "delay (ms)"}
     for sweep, levels in rob["levels"].items():
-        lines += ["| Method | " + " | ".join(f"{names[sweep]} {v:g}" for v in levels) + " |",
-                  "|---|" + "---|" * len(levels)]
-        for method, entry in rob["methods"].items():
-            lines.append(f"| {METHODS[method].display} | " + " | ".join(
-                f"{_iv(c['ap50']['overall'])} / {_iv(c['ap50']['50-100'])}" for c in entry[sweep]) + " |")
-        lines.append("")
-    lines += ["| Method | message | bytes per message | AP@0.5 overall / 50–100 m |", "|---|---|---|---|"]
+        lines += [markdown_table(["Method", *(f"{names[sweep]} {v:g}" for v in levels)],
+                                 ([METHODS[method].display,
+                                   *(f"{_iv(c['ap50']['overall'])} / {_iv(c['ap50']['50-100'])}" for c in entry[sweep])]
+                                  for method, entry in rob["methods"].items())), ""]
+    messages = []
     for method, entry in rob["methods"].items():
-        kind = METHODS[method].message
         if "quantization" not in entry:
             c = entry["position_std"][0]["ap50"]
-            lines.append(f"| {METHODS[method].display} | {kind} | {entry['bytes_per_message']:,.0f} | "
-                         f"{_iv(c['overall'])} / {_iv(c['50-100'])} |")
-        for q in entry.get("quantization", []):
-            lines.append(f"| {METHODS[method].display} | features, {q['bits']} bit | {q['bytes_per_message']:,.0f} | "
-                         f"{_iv(q['ap50']['overall'])} / {_iv(q['ap50']['50-100'])} |")
+            messages.append([METHODS[method].display, METHODS[method].message, f"{entry['bytes_per_message']:,.0f}",
+                             f"{_iv(c['overall'])} / {_iv(c['50-100'])}"])
+        messages += [[METHODS[method].display, f"features, {q['bits']} bit", f"{q['bytes_per_message']:,.0f}",
+                      f"{_iv(q['ap50']['overall'])} / {_iv(q['ap50']['50-100'])}"]
+                     for q in entry.get("quantization", [])]
+    lines.append(markdown_table(["Method", "message", "bytes per message", "AP@0.5 overall / 50–100 m"], messages))
     if results.get("skipped"):
         lines += ["", "## Skipped", ""] + [f"- {k}: {v}" for k, v in results["skipped"].items()]
     lines += ["", "Plots: [PR curves](fusion_pr.png), [robustness](fusion_robustness.png). "

@@ -51,7 +51,10 @@ from typ.io import read_json_or_none
 from typ.metrics.detection import FrameMatches, ap_of_frames, frame_matches, pr_curves
 from typ.metrics.intervals import bootstrap
 
+#: the AP figures, by name: the BEV IoU a detection must reach. A new one is an entry here (and
+#: its column in the reports and metrics follows)
 IOU_THRESHOLDS = {"ap50": 0.5, "ap70": 0.7}
+#: typ.metrics.detection.frame_matches' bands: overall, then its default ranges
 BANDS = ("overall", "0-30", "30-50", "50-100")
 #: the bands robustness curves keep (AP@0.5)
 ROBUSTNESS_BANDS = ("overall", "50-100")
