@@ -188,9 +188,11 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     for k, v in first.model.state_dict().items():
         assert torch.equal(v, again.model.state_dict()[k])
     # typ.artifacts' layout: what rebuilds the model under "config", the run's fields beside it
-    folder = tmp_path / "a" / "models" / stage.model_name(run, 0, cfg.prediction)
+    folder = stage.model_folder(tmp_path / "a", run, 0, cfg.prediction)
+    assert folder == tmp_path / "a" / "models" / stage.network_name(run, cfg.prediction) / "seed_0"
     saved = json.loads((folder / "config.json").read_text())
-    assert saved["config"] == first.model.config and saved["key"] == first.key
+    public = {k: v for k, v in first.model.config.items() if not k.startswith("_")}   # diffusers' _-keys stay out
+    assert saved["config"] == json.loads(json.dumps(public)) and saved["key"] == first.key
     assert (saved["schedule"], saved["train_timesteps"]) == (run.schedule, cfg.train_timesteps)
     # a damaged or missing weights file of a model the key says to reuse names the file and the stage
     (folder / "model.safetensors").write_bytes(b"\x00" * 20)
@@ -203,9 +205,8 @@ def test_training_resumes_reuses_and_stops_on_nan(cfg, scans, tmp_path):
     interrupted = dataclasses.replace(cfg, steps=4)
     stage.train_model(interrupted, run, reps[run.representation], 0, x, data, out=tmp_path / "b", log_fn=print)
     key = stage.model_key(cfg, run, reps[run.representation], 0, data)
-    name = stage.model_name(run, 0, cfg.prediction)
-    (tmp_path / "b" / "checkpoints" / name / stage.model_key(interrupted, run, reps[run.representation], 0, data)).rename(
-        tmp_path / "b" / "checkpoints" / name / key)
+    runs = tmp_path / "b" / "checkpoints" / stage.network_name(run, cfg.prediction) / "seed_0"   # seed_dir's layout
+    (runs / stage.model_key(interrupted, run, reps[run.representation], 0, data)).rename(runs / key)
     resumed_steps = []
     resumed = stage.train_model(cfg, run, reps[run.representation], 0, x, data, out=tmp_path / "b",
                                 log_fn=lambda v, s: resumed_steps.append(s))

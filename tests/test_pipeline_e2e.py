@@ -554,7 +554,8 @@ def test_ddpm_stage_writes_its_table_models_and_report(project):
     assert set(dd["feature_nets"]) == {"range", "voxel"} and set(dd["models"]) == {
         "range-time_dependent-fourier-v-seed0", "bev-linear-sinusoidal-v-seed0"}
     for name in dd["models"]:
-        folder = proj / "artifacts" / "ddpm" / "models" / name
+        network, seed = name.rsplit("-seed", 1)       # a model's name; its folder: <network>/seed_<k>
+        folder = proj / "artifacts" / "ddpm" / "models" / network / f"seed_{seed}"
         saved = read_config(folder, "ddpm")
         assert saved["train_timesteps"] == 1000 and saved["prediction"] == "v_prediction" and read_weights(folder, "ddpm")
     text = (proj / "reports" / "ddpm.md").read_text()
