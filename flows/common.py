@@ -220,17 +220,17 @@ class PrefectTrainings:
     def started(self, name: str, future) -> None:
         if self._runner is None:
             raise RuntimeError("PrefectTrainings.started outside its `with` block")
-        self.pending.append(self._runner.submit(self._task(future.result, name), parameters={}))
+        self.pending.append(self._runner.submit(_training_task(future.result, name), parameters={}))
 
-    @staticmethod
-    def _task(fn: Callable, name: str):
-        return plain_task(fn, name).with_options(task_run_name=name)   # the run is called as the training
+
+def _training_task(fn: Callable, name: str):
+    return plain_task(fn, name).with_options(task_run_name=name)   # the run is called as the training
 
 
 def training_task(name: str, fn: Callable[[], object]) -> object:
     """One training, run here as a Prefect task run named ``name`` (``train-<network>-seed<k>``):
     what a flow that trains one network at a time calls, :meth:`PrefectTrainings.run` as well."""
-    return PrefectTrainings._task(fn, name)()
+    return _training_task(fn, name)()
 
 
 def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:

@@ -13,7 +13,7 @@ sampler; generated images go back to points, which are what every metric compare
   Salimans & Ho: the same minimiser, with more weight where x_0 is hard to read from x_t), AdamW,
   mirrored copies of every image (y -> -y), batches a pure function of (seed, step)
   (:func:`tasks.training.run_loop`: resumable, a NaN loss stops with the last good checkpoint).
-  Weights: ``<out>/models/<name>/`` as :mod:`typ.artifacts` writes them (the config with the
+  Weights: ``<out>/models/<network>/seed_<k>/`` as :mod:`typ.artifacts` writes them (the config with the
   run key: a model whose key matches is loaded, not retrained).
 - Sampling: :func:`models.samplers.sample` with a stock diffusers scheduler on the model's
   own β and ``prediction_type``; the generated set of a (model, sampler, steps) is cached under ``<out>/samples/``.

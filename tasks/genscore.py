@@ -24,6 +24,7 @@ Figures (all pooled over the voxels / boxes / scans of the set, not averaged per
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -79,14 +80,16 @@ class Pair:
     grid: Grid
     stats: dict
     _counts: dict = field(default_factory=dict, repr=False)
-    _centres: np.ndarray | None = field(default=None, repr=False)
 
-    @property
+    @cached_property
     def centres(self) -> np.ndarray:
         """(M, 3) the occupied voxel centres of the method's view."""
-        if self._centres is None:
-            self._centres = voxel_centers(self.occupancy.transpose(1, 2, 0), self.grid)
-        return self._centres
+        return voxel_centers(self.occupancy.transpose(1, 2, 0), self.grid)
+
+    @cached_property
+    def distance(self) -> np.ndarray:
+        """(H, W) planar distance of each BEV cell from the reference sensor (:func:`cell_distance`)."""
+        return cell_distance(self.grid)
 
     def counts(self, mask: str) -> tuple[int, int, int]:
         """(true positives, false positives, false negatives) over the voxels of ``MASKS[mask]``."""
@@ -100,8 +103,7 @@ class Pair:
 
 def _band(lo: float, hi: float) -> Callable[[Pair], np.ndarray]:
     def where(p: Pair) -> np.ndarray:
-        dist = cell_distance(p.grid)
-        return np.broadcast_to((dist >= lo) & (dist < hi), p.truth.shape)
+        return np.broadcast_to((p.distance >= lo) & (p.distance < hi), p.truth.shape)
     return where
 
 

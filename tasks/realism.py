@@ -38,9 +38,10 @@ ON_BEAM_DEG = 0.05
 FEATURES = ("frid", "fpvd")
 #: figure -> True where lower is better
 LOWER_IS_BETTER = {"on_beam": False, "row_profile_l1": True, "frid": True, "fpvd": True}
-#: the realism table's columns (the generation report's), in order: (figure, label)
-COLUMNS = [("on_beam", f"on a beam ±{ON_BEAM_DEG}° ↑"), ("row_profile_l1", "row profile L1 ↓"),
-           ("frid", "FRID† ↓"), ("fpvd", "FPVD† ↓")]
+#: the realism table's columns (the generation report's), in order: (figure, label with its direction)
+COLUMNS = [(figure, f"{label} {'↓' if LOWER_IS_BETTER[figure] else '↑'}")
+           for figure, label in (("on_beam", f"on a beam ±{ON_BEAM_DEG}°"), ("row_profile_l1", "row profile L1"),
+                                 ("frid", "FRID†"), ("fpvd", "FPVD†"))]
 
 
 @dataclass
