@@ -76,6 +76,15 @@ def quiet_bad_input_tracebacks() -> None:
             logger.addFilter(_BadInputWithoutTraceback())
 
 
+def settled_before_prefect(stage: str) -> bool:
+    """Whether ``typ run <stage>`` first tries to settle it without Prefect: a per-scene stage that
+    needs no torch (the stage registry says), whose every scene may be unchanged."""
+    from flows.stages import by_name
+
+    spec = by_name()[stage]
+    return spec.kind == "per-scene" and not spec.torch
+
+
 def _cmd_run(args) -> int:
     root = Path(args.root)
     if args.stage != "all" and args.stage not in STAGES:
@@ -90,7 +99,7 @@ def _cmd_run(args) -> int:
     # one stage: the API the environment names, else Prefect's temporary server for this process
     with terminate_raises(), (prefect_api(Path(os.environ["PREFECT_HOME"])) if args.stage == "all"
                               else contextlib.nullcontext()):
-        if args.stage != "all" and args.runner == "thread" and not args.address:
+        if args.stage != "all" and args.runner == "thread" and not args.address and settled_before_prefect(args.stage):
             from flows.common import settle_stage
 
             # every scene unchanged: logged to MLflow, done before Prefect is even imported

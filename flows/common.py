@@ -360,14 +360,11 @@ def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> d
 
 #: per-scene stages whose ``tasks.<stage>.scene_stage`` needs neither torch nor a trained model,
 #: so ``typ run <stage>`` asks :func:`settle_stage` before it imports Prefect
-SETTLED_BEFORE_PREFECT = ("simulate", "voxelize")
-
-
 def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path(".")) -> dict | None:
-    """:func:`settle_unchanged` for ``stage`` when it is one of :data:`SETTLED_BEFORE_PREFECT`
-    and this process is not one rank of several (under torchrun such a stage is refused by
-    ``flows.pipeline.run_stage``); None otherwise, or when the stage has work."""
-    if stage not in SETTLED_BEFORE_PREFECT or int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    """:func:`settle_unchanged` for the per-scene ``stage`` (one the registry says needs no
+    torch: the CLI asks) when this process is not one rank of several (under torchrun such a
+    stage is refused by ``flows.pipeline.run_stage``); None otherwise, or when it has work."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         return None
     cfg = load_config(root / params)
     spec = importlib.import_module(f"tasks.{stage}").scene_stage(cfg, root)

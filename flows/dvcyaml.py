@@ -88,9 +88,12 @@ def closure(start: str, root: Path = ROOT) -> set[Path]:
 
 
 def code_deps(stage: str, root: Path = ROOT) -> list[str]:
-    """The code deps of stage ``stage``: its flow's import closure, :data:`FOLDERS` as folders."""
+    """The code deps of stage ``stage``: its flow's import closure (a stage with no flow module:
+    :mod:`flows.generic`'s and its task module's), :data:`FOLDERS` as folders."""
+    flow = f"flows.{stage}"
+    starts = [flow] if module_file(flow, root) is not None else ["flows.generic", f"tasks.{stage}"]
     out = set()
-    for path in closure(f"flows.{stage}", root):
+    for path in set().union(*(closure(start, root) for start in starts)):
         rel = str(path.relative_to(root))
         out.add(next((f for f in FOLDERS if rel.startswith(f + "/")), rel))
     return sorted(out)

@@ -3,12 +3,14 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import os
 from pathlib import Path
 from typing import Callable
 
 from prefect import flow
 
+from flows import stages as registry
 from flows.common import api_for_workers, runner
 from typ.config import Config, load_config
 from typ.errors import TypError
@@ -19,17 +21,27 @@ from typ.tracking import PARENT_ENV, is_main_process, stage_run
 def _flow(stage: str) -> Callable:
     # imported lazily, one stage at a time: `typ --help` must not pay for Prefect's import of
     # every stage, and one stage's dependencies must not be needed to run another
+    if importlib.util.find_spec(f"flows.{stage}") is None:  # no flow of its own: from its task module
+        from flows.generic import flow_of
+
+        return flow_of(stage)
     module = importlib.import_module(f"flows.{stage}")
     return getattr(module, f"{stage}_flow")
 
 
 STAGES = Config.STAGES
-#: stages that fan out per scene (a task runner: threads or Dask); the others train (torchrun/DDP)
-PER_SCENE = ("simulate", "voxelize", "generate")
+_REGISTERED = registry.by_name()
+#: stages that fan out per scene (a task runner: threads or Dask); the others train or score
+#: (torchrun/DDP), as the stage registry says
+PER_SCENE = tuple(s for s in STAGES if _REGISTERED[s].kind == "per-scene")
 TRAINING = tuple(s for s in STAGES if s not in PER_SCENE)
 #: stages whose code never imports torch (nor diffusers, mlflow's model code): `typ run` sets up
 #: no device for them, and a run with nothing to do costs its imports of Prefect, pyarrow, MLflow
-WITHOUT_TORCH = ("simulate", "voxelize")
+WITHOUT_TORCH = tuple(s for s in STAGES if not _REGISTERED[s].torch)
+#: MLflow's switch for a run's system metrics (CPU, memory, disk, network; GPU with pynvml,
+#: sampled from a thread, offline): on for the registry's training stages unless the
+#: environment says otherwise, off for the others unless it says so
+SYSTEM_METRICS_ENV = "MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING"
 
 
 #: the project root ``typ serve`` serves, in its environment and so in its flow runs' (flows.deploy)
@@ -71,9 +83,24 @@ def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_
         task_runner, address = "thread", None
     fl = fl.with_options(task_runner=runner(getattr(block, "workers", 1), task_runner, address))
     # one run per output; under torchrun rank 0 holds the lock for the ranks, which write nothing
+    system_metrics = {SYSTEM_METRICS_ENV: "true"} if _REGISTERED[stage].kind == "training" else {}
     with output_lock(root, stage, Path(root) / block.out) if is_main_process() else contextlib.nullcontext(), \
-            api_for_workers() if task_runner == "dask" else contextlib.nullcontext():
+            api_for_workers() if task_runner == "dask" else contextlib.nullcontext(), \
+            environment_default(system_metrics):
         return fl(params=params, root=root)
+
+
+@contextlib.contextmanager
+def environment_default(values: dict[str, str]):
+    """Set each of ``values`` in ``os.environ`` where the environment does not already set it,
+    for the block's duration (``typ run all`` runs every stage in one process)."""
+    added = [k for k in values if k not in os.environ]
+    os.environ.update({k: values[k] for k in added})
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
 
 
 @flow(name="pipeline", log_prints=False, validate_parameters=False)

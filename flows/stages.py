@@ -2,8 +2,12 @@
 
 ``dvc.yaml`` is generated from this table (``typ dvc-yaml``, :mod:`flows.dvcyaml`; a test fails
 when the committed file differs), with each stage's code deps taken from its flow's import
-closure and its profile keys from ``typ/profiles.yaml``. Adding a stage is a task module, a
-flow ``flows/<name>.py``, a config block of the same name and one entry here.
+closure and its profile keys from ``typ/profiles.yaml``. The flow runner takes each stage's kind
+and whether it needs torch from here too (:mod:`flows.pipeline`, the CLI).
+
+Adding a stage is a task module ``tasks/<name>.py``, a config block of the same name and one
+entry here: a stage with no flow module of its own runs through :mod:`flows.generic` (the task
+module's ``scene_stage`` or ``run``). A flow ``flows/<name>.py`` is for a stage that needs more.
 
 The method lists it draws come from the torch-free registries (:mod:`models.registry`, through
 :mod:`typ.config`), so building dvc.yaml imports no torch. No stage's flow imports this module,
@@ -42,6 +46,9 @@ class Stage:
     reports: tuple[str, ...] = ()               #: report files and folders (not cached)
     images: tuple[str, ...] = ()                #: figures dvc declares as plots (not cached)
     loss_curves: bool = False                   #: ``<out>/loss/*.csv``, one per network
+    #: whether its code imports torch: a stage that does not gets no device set up, and one that is
+    #: also per-scene is settled without Prefect when every scene is unchanged
+    torch: bool = True
     plots: tuple[Plot, ...] = field(default_factory=tuple)
 
     @property
@@ -70,8 +77,8 @@ def stages() -> tuple[Stage, ...]:
     target = "data/voxels/dataset=target/split="
     cooperative = [m for m in FUSION_METHODS if m != "none"]
     return (
-        Stage("simulate", "per-scene", outs=("data/sim",)),
-        Stage("voxelize", "per-scene", data=("data/sim",), outs=("data/voxels",)),
+        Stage("simulate", "per-scene", outs=("data/sim",), torch=False),
+        Stage("voxelize", "per-scene", data=("data/sim",), outs=("data/voxels",), torch=False),
         Stage("vqvae", "training", data=(f"{target}train", f"{target}val"), outs=("artifacts/vqvae",),
               loss_curves=True),
         Stage("stage1", "training", data=(f"{target}train", f"{target}val", "artifacts/vqvae"),
@@ -131,6 +138,11 @@ def stages() -> tuple[Stage, ...]:
                   _sweep("bits", "bits", "feature bits per value", "AP vs feature quantisation", FUSION_METHODS),
               )),
     )
+
+
+def by_name() -> dict[str, Stage]:
+    """Every stage by name, in pipeline order."""
+    return {s.name: s for s in stages()}
 
 
 #: plots of files no stage writes (``make bench``)

@@ -27,6 +27,7 @@ import numpy as np
 from models.registry import PLOTTED_GENERATION_METHODS
 from tasks import evaluate_generation as gen
 from tasks import genscore, realism, selftrain
+from tasks.scene_stage import StageResult
 from typ.io import write_text
 from typ.metrics.intervals import Interval
 from typ.reporting import markdown_table
@@ -147,16 +148,6 @@ def realism_section(result: dict) -> list[str]:
     ]
 
 
-from dataclasses import dataclass, field  # noqa: E402
-
-
-@dataclass
-class EvaluateResult:
-    metrics: dict
-    artifacts: list = field(default_factory=list)
-    summary: str = ""
-
-
 def intervals_json(table_: dict[str, dict[str, Interval]]) -> dict:
     """``{method: {figure: {value, low, high}}}`` for metrics/evaluate.json (NaN as None)."""
     def clean(v: float):
@@ -188,7 +179,7 @@ def gallery_samples(data: "gen.EvalSet", result: dict, n: int) -> list[dict]:
     return out
 
 
-def run(cfg, root: Path, *, run=None) -> EvaluateResult:
+def run(cfg, root: Path, *, run=None) -> StageResult:
     """Score everything the trained artifacts provide; write the reports, plots and gallery."""
     from tasks import adapt
     from tasks.voxel_data import load_views
@@ -222,7 +213,7 @@ def run(cfg, root: Path, *, run=None) -> EvaluateResult:
     fusion_metrics, fusion_paths, fusion_lines = fusion_section(cfg, root)
     metrics["fusion"] = fusion_metrics
     summary = "\n".join(["# typ evaluate", "", *lines, "", *fusion_lines])
-    return EvaluateResult(metrics, [*paths, *fusion_paths], summary)
+    return StageResult(metrics, [*paths, *fusion_paths], summary)
 
 
 def missing_truth(split_root: Path) -> str | None:

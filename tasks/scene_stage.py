@@ -1,4 +1,5 @@
-"""What a per-scene stage is, without Prefect: the pieces ``flows.common`` runs.
+"""What a stage's task module hands its flow, without Prefect: a per-scene stage's pieces
+(:class:`SceneStage`, run by ``flows.common``), or the other stages' result (:class:`StageResult`).
 
 Building one reads the params and lists the scenes but imports no orchestration, so the CLI can
 settle a stage whose every scene is unchanged before Prefect is imported
@@ -30,3 +31,14 @@ class SceneStage:
     summarize: Callable[[list[dict]], dict]
     work_kwargs: dict = field(default_factory=dict)
     unchanged: Callable[..., dict | None] | None = None
+
+
+@dataclass
+class StageResult:
+    """What a stage's ``run`` returns (``flows.generic``): its metrics (``metrics/<stage>.json``),
+    the files its MLflow run keeps (paths, or (path, folder) pairs) and a markdown summary for
+    the Prefect UI ("" for none)."""
+
+    metrics: dict
+    artifacts: list = field(default_factory=list)
+    summary: str = ""

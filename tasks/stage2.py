@@ -32,6 +32,7 @@ from models.adapter import ZeroAdapter
 from models.ldm import LatentDiffusion
 from models.schedules import alphas_cumprod, betas
 from tasks.pairs import Pair
+from tasks.scene_stage import StageResult
 from tasks.stage1 import train_views
 from tasks.training import (EMA, Trainings, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
                             run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
@@ -307,15 +308,16 @@ def source_tuples(cfg, root: Path, *, resim: bool) -> Tuples:
     return collect(pairs, grid=grid, resim_spec=spec, max_pairs=block.max_pairs or None)
 
 
-def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
-        trainings: Trainings = Trainings()) -> dict:
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
     """The stage: adapters for every stage-1 replica (and the one-stage model when asked), each
-    training reported to ``trainings`` as ``train-<adapter>-seed<k>`` / ``train-one-stage-seed<k>``."""
+    training reported to ``trainings`` as ``train-<adapter>-seed<k>`` / ``train-one-stage-seed<k>``;
+    losses and the first replica's adapter go to ``run`` (a :class:`typ.tracking.StageRun`)."""
     from tasks import stage1
     from tasks.vqvae import load_model as load_vqvae
 
     block = cfg.stage2
     out = root / block.out
+    log_fn = run.metrics
     source_x = load_vqvae(root / block.adapt / "source_vq", "adapt")
     y_encoder = load_vqvae(root / block.vqvae / "y")
     tuples = source_tuples(cfg, root, resim=block.resim)
@@ -332,12 +334,12 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
                 settings=settings_of(block, seed, cfg.stage1.min_snr), views=len(tuples), key_extra=as_dict(block),
                 out=out, log_fn=log_fn))
             save_adapter(fitted, stage1.replica_dir(out, seed) / name)
-            if log_model is not None and seed == cfg.stage1.seed and conditions == 1:
-                log_model("stage2-adapter", fitted, data.ego[:2])  # F_AD(x^f_e') -> one map per UNet level
+            if seed == cfg.stage1.seed and conditions == 1:
+                run.log_model("stage2-adapter", fitted, data.ego[:2])  # F_AD(x^f_e') -> one map per UNet level
         if block.one_stage:
             trainings.run(f"train-one-stage-seed{seed}", lambda: fit_one_stage(
                 cfg, root, tuples, source_x, y_encoder, seed=seed, out=out, log_fn=log_fn))
-    return metrics
+    return StageResult(metrics)
 
 
 def one_stage_steps(cfg, root: Path, source_tuples_n: int) -> tuple[int, int]:

@@ -49,7 +49,7 @@ def test_the_cli_environment_puts_prefects_api_handler_on_typs_loggers(tmp_path)
         _setup_env(Path("."))
         print(os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"])
         import logging
-        import flows.voxelize  # a flow module imports prefect, which sets up its logging
+        import flows.generic  # a flow module imports prefect, which sets up its logging
         from prefect.logging.handlers import APILogHandler
         for name in ("typ", "tasks", "mine"):
             print(name, any(isinstance(h, APILogHandler) for h in logging.getLogger(name).handlers))

@@ -11,7 +11,7 @@ from mlflow.tracking import MlflowClient
 from typ import viz
 from typ.config import config_from_dict
 from typ.errors import TypError
-from typ.tracking import NullRun, StageRun, TRAINING_STAGES, listing_digest, stage_run, table_frame
+from typ.tracking import NullRun, StageRun, listing_digest, stage_run, table_frame
 
 CFG = config_from_dict({"profile": "tiny"})
 
@@ -75,14 +75,20 @@ def test_listing_digest_follows_names_and_sizes_only(tmp_path):
 
 
 def test_training_stages_log_system_metrics_offline(store, monkeypatch):
+    import os
     import time
 
     pytest.importorskip("psutil")
     tmp_path, client = store
+    from flows.pipeline import SYSTEM_METRICS_ENV, environment_default, registry
+
     monkeypatch.setenv("MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL", "0.5")
-    assert "vqvae" in TRAINING_STAGES and "simulate" not in TRAINING_STAGES
-    with stage_run("vqvae", CFG, root=tmp_path) as run:
-        time.sleep(1.6)
+    monkeypatch.delenv(SYSTEM_METRICS_ENV, raising=False)
+    assert registry.by_name()["vqvae"].kind == "training" != registry.by_name()["simulate"].kind
+    with environment_default({SYSTEM_METRICS_ENV: "true"}):   # what run_stage sets for a training stage
+        with stage_run("vqvae", CFG, root=tmp_path) as run:
+            time.sleep(1.6)
+    assert SYSTEM_METRICS_ENV not in os.environ
     metrics = client.get_run(run.run_id).data.metrics
     assert {"system/cpu_utilization_percentage", "system/system_memory_usage_megabytes"} <= set(metrics)
     assert 0.0 <= metrics["system/cpu_utilization_percentage"] <= 100.0 * 64

@@ -30,11 +30,6 @@ PARENT_ENV = "TYP_PARENT_RUN_ID"
 log = logging.getLogger(__name__)
 
 
-#: stages whose runs log system metrics (CPU, memory, disk, network; GPU with pynvml) every
-#: MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL seconds (MLflow's default: 10) from a thread; psutil
-#: is all it needs, and it logs to the run's own store, so it works offline
-TRAINING_STAGES = ("vqvae", "stage1", "adapt", "stage2", "selftrain", "fusion", "ssc")
-
 #: environment DVC sets for a stage command during `dvc exp run` -> the MLflow tag it becomes
 DVC_EXP_TAGS = {"DVC_EXP_NAME": "dvc.exp_name", "DVC_EXP_BASELINE_REV": "dvc.exp_baseline_rev"}
 
@@ -179,12 +174,13 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".", tags: dict[str
 
     client.log_batch(run_id, params=[Param(k, _short(v)) for k, v in {**params, "profile": cfg.profile}.items()],
                      synchronous=True)
-    # None leaves the other stages to MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING
-    system_metrics = True if stage in TRAINING_STAGES else None
-    if system_metrics:  # its start/stop INFO lines would be all a stage prints
-        logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
+    # system metrics (CPU, memory, disk, network; GPU with pynvml) every
+    # MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL seconds from a thread, offline, where
+    # MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING says (the flow runner turns it on for training stages);
+    # their start/stop INFO lines would be all a stage prints
+    logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
     # active for this thread, so that mlflow's fluent calls (log_model) and nested stages see it
-    with mlflow.start_run(run_id=run_id, nested=active is not None, log_system_metrics=system_metrics):
+    with mlflow.start_run(run_id=run_id, nested=active is not None):
         try:
             yield StageRun(mlflow, run_id)
         except (KeyboardInterrupt, SystemExit):
