@@ -358,8 +358,6 @@ def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> d
                               kept_not_written_by_typ=len(kept), seconds_total=round(timer.seconds, 3))
 
 
-#: per-scene stages whose ``tasks.<stage>.scene_stage`` needs neither torch nor a trained model,
-#: so ``typ run <stage>`` asks :func:`settle_stage` before it imports Prefect
 def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path(".")) -> dict | None:
     """:func:`settle_unchanged` for the per-scene ``stage`` (one the registry says needs no
     torch: the CLI asks) when this process is not one rank of several (under torchrun such a

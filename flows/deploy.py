@@ -14,7 +14,6 @@ so the runner's flow-run processes import them from the installed project.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import yaml
@@ -22,6 +21,7 @@ from prefect import flow
 from prefect.types.entrypoint import EntrypointType
 
 from flows.pipeline import SERVED_ROOT_ENV, pipeline_flow, run_stage, served_project_only
+from flows.server import scoped_environ
 from typ.config import load_config, read_params
 from typ.formats.opv2v import list_scenarios
 from typ.io import write_text
@@ -113,8 +113,5 @@ def serve(root: Path, params: str = "params.yaml", only: list[str] | None = None
         raise TypError("typ serve", "--only", f"deployment names from {sorted(available)}", unknown)
     chosen = [d for name, d in available.items() if not only or name in only]
     kwargs = {"query_seconds": poll_seconds} if poll_seconds else {}
-    os.environ[SERVED_ROOT_ENV] = str(Path(root).resolve())   # the flow runs' processes inherit it
-    try:
+    with scoped_environ({SERVED_ROOT_ENV: str(Path(root).resolve())}):   # the flow runs' processes inherit it
         prefect_serve(*chosen, **kwargs)
-    finally:
-        os.environ.pop(SERVED_ROOT_ENV, None)

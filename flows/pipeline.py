@@ -12,6 +12,7 @@ from prefect import flow
 
 from flows import stages as registry
 from flows.common import api_for_workers, runner
+from flows.server import scoped_environ
 from typ.config import Config, load_config
 from typ.errors import TypError
 from typ.io import output_lock
@@ -86,21 +87,8 @@ def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_
     system_metrics = {SYSTEM_METRICS_ENV: "true"} if _REGISTERED[stage].kind == "training" else {}
     with output_lock(root, stage, Path(root) / block.out) if is_main_process() else contextlib.nullcontext(), \
             api_for_workers() if task_runner == "dask" else contextlib.nullcontext(), \
-            environment_default(system_metrics):
+            scoped_environ(system_metrics, keep_set=True):   # `typ run all`: every stage in one process
         return fl(params=params, root=root)
-
-
-@contextlib.contextmanager
-def environment_default(values: dict[str, str]):
-    """Set each of ``values`` in ``os.environ`` where the environment does not already set it,
-    for the block's duration (``typ run all`` runs every stage in one process)."""
-    added = [k for k in values if k not in os.environ]
-    os.environ.update({k: values[k] for k in added})
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
 
 
 @flow(name="pipeline", log_prints=False, validate_parameters=False)
@@ -110,16 +98,7 @@ def pipeline_flow(params: str = "params.yaml", root: str = ".", task_runner: str
     served_project_only(params, root)
     cfg = load_config(Path(root) / params)
     results = {}
-    with stage_run("pipeline", cfg, root=Path(root)) as parent:
-        previous = os.environ.get(PARENT_ENV)
-        os.environ[PARENT_ENV] = parent.run_id
-        try:
-            for stage in STAGES:
-                results[stage] = run_stage(stage, params=params, root=root, task_runner=task_runner,
-                                           address=address)
-        finally:
-            if previous is None:
-                os.environ.pop(PARENT_ENV, None)
-            else:
-                os.environ[PARENT_ENV] = previous
+    with stage_run("pipeline", cfg, root=Path(root)) as parent, scoped_environ({PARENT_ENV: parent.run_id}):
+        for stage in STAGES:
+            results[stage] = run_stage(stage, params=params, root=root, task_runner=task_runner, address=address)
     return results

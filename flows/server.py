@@ -240,17 +240,28 @@ def prefect_api(home: Path, *, host: str = "127.0.0.1", port: int | None = None,
     if given:
         yield given, None
         return
-    with LocalServer.running(home, host=host, port=port, ui=ui, timeout=timeout) as server:
-        previous = {k: os.environ.get(k) for k in server.client_env}
-        try:
-            os.environ.update(server.client_env)
-            yield server.api_url, server
-        finally:
-            for k, v in previous.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
+    with LocalServer.running(home, host=host, port=port, ui=ui, timeout=timeout) as server, \
+            scoped_environ(server.client_env):
+        yield server.api_url, server
+
+
+@contextlib.contextmanager
+def scoped_environ(values: dict[str, str], *, keep_set: bool = False) -> Iterator[None]:
+    """``values`` in ``os.environ`` for the block's duration, then each variable as it was (unset
+    or its previous value). ``keep_set``: a variable the environment already sets keeps its value
+    (``values`` are defaults)."""
+    if keep_set:
+        values = {k: v for k, v in values.items() if k not in os.environ}
+    previous = {k: os.environ.get(k) for k in values}
+    try:
+        os.environ.update(values)
+        yield
+    finally:
+        for k, v in previous.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def drain_prefect_services(timeout: float = 10.0) -> None:

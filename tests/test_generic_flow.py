@@ -152,9 +152,12 @@ def test_code_deps_of_a_stage_without_a_flow_are_the_generic_flows_and_its_task_
                                                      "tasks/other.py"]
 
 
-def test_environment_defaults_never_override_the_user_and_are_removed_after(monkeypatch):
+def test_scoped_environment_restores_and_defaults_never_override_the_user(monkeypatch):
     monkeypatch.delenv("TYP_PROBE_A", raising=False)
     monkeypatch.setenv("TYP_PROBE_B", "user")
-    with pipeline.environment_default({"TYP_PROBE_A": "true", "TYP_PROBE_B": "true"}):
+    with pipeline.scoped_environ({"TYP_PROBE_A": "true", "TYP_PROBE_B": "true"}, keep_set=True):
         assert os.environ["TYP_PROBE_A"] == "true" and os.environ["TYP_PROBE_B"] == "user"
+    assert "TYP_PROBE_A" not in os.environ and os.environ["TYP_PROBE_B"] == "user"
+    with pipeline.scoped_environ({"TYP_PROBE_A": "1", "TYP_PROBE_B": "2"}):   # set, then as they were
+        assert (os.environ["TYP_PROBE_A"], os.environ["TYP_PROBE_B"]) == ("1", "2")
     assert "TYP_PROBE_A" not in os.environ and os.environ["TYP_PROBE_B"] == "user"

@@ -80,12 +80,12 @@ def test_training_stages_log_system_metrics_offline(store, monkeypatch):
 
     pytest.importorskip("psutil")
     tmp_path, client = store
-    from flows.pipeline import SYSTEM_METRICS_ENV, environment_default, registry
+    from flows.pipeline import SYSTEM_METRICS_ENV, registry, scoped_environ
 
     monkeypatch.setenv("MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL", "0.5")
     monkeypatch.delenv(SYSTEM_METRICS_ENV, raising=False)
     assert registry.by_name()["vqvae"].kind == "training" != registry.by_name()["simulate"].kind
-    with environment_default({SYSTEM_METRICS_ENV: "true"}):   # what run_stage sets for a training stage
+    with scoped_environ({SYSTEM_METRICS_ENV: "true"}, keep_set=True):   # what run_stage sets for training
         with stage_run("vqvae", CFG, root=tmp_path) as run:
             time.sleep(1.6)
     assert SYSTEM_METRICS_ENV not in os.environ
