@@ -6,8 +6,9 @@ The experiments, as training runs and the table cells they fill:
   clouds (``oracle``) or with TYP's generated ones (``generated``: same frames, same poses, the
   ego's true cloud, labels cut to the generated extent), all scored on real_cav/test with true
   clouds. No fusion has one row (``ego``): it runs the single-agent detector late fusion trains.
-- **Table 3**: pre-train on the generated target split (``colwaymo``, the ColWaymo analogue) or
-  on simulated source data (``source``, the OPV2V analogue) or not at all (``scratch``), then
+- **Table 3**: pre-train on each of ``pretrain_sources``: the generated target split (``colwaymo``,
+  the ColWaymo analogue), simulated source data (``source``, the OPV2V analogue), the two in one
+  set (``both``), or not at all (``scratch``), then
   fine-tune on 0, each of ``finetune_scenes`` and all real_cav/train scenarios. One pre-training
   per (source, method) serves every fine-tuning size; scratch on all scenarios is Table 1's
   oracle run; a scratch network fine-tuned on 0 scenes does not exist. The arms differ only in
@@ -53,7 +54,11 @@ from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
 from typ.io import SCENARIO_MANIFEST, read_json_or_none
 
-PRETRAIN_SOURCES = ("colwaymo", "source")
+#: Table 3's paired differences, (row, base): each pre-training against scratch, the generated target
+#: against source sim (the paper's realism claim) and both against source sim (what adding the
+#: generated data to a simulated set gains); a pair is scored where both rows were trained
+TABLE3_PAIRS = (("colwaymo", "scratch"), ("source", "scratch"), ("both", "scratch"), ("colwaymo", "source"),
+                ("both", "source"))
 
 
 @dataclass(frozen=True)
@@ -89,7 +94,7 @@ class Cell:
 @dataclass(frozen=True)
 class Run:
     """One training run of a trained method's network on training set ``data`` (``real``,
-    ``real-<n>`` (the first n scenarios), ``generated``, ``colwaymo``, ``source``), from scratch,
+    ``real-<n>`` (the first n scenarios), ``generated``, ``colwaymo``, ``source``, ``both``), from scratch,
     fine-tuned from run ``init`` or warm-started from the single-agent run ``warm``."""
 
     name: str
@@ -171,8 +176,8 @@ def plan(cfg: FusionConfig, roots: Roots) -> Plan:
             if METHODS[m].inputs != "ego":     # the ego's cloud is never generated
                 p.cells.append(Cell("table1", m, "generated", None, generated[METHODS[m].network]))
 
-    for source in PRETRAIN_SOURCES:
-        reason = unavailable(getattr(roots, source))
+    for source in cfg.pretrain_sources:
+        reason = pretraining_unavailable(roots, source)
         if reason:
             p.skipped[f"table3/{source}"] = reason
             continue
@@ -194,6 +199,13 @@ def plan(cfg: FusionConfig, roots: Roots) -> Plan:
         cells("table3", "scratch", name, lambda n: runs[n])
     p.robustness = {m: oracle[METHODS[m].network] for m in cfg.methods}
     return p
+
+
+def pretraining_unavailable(roots: Roots, source: str) -> str | None:
+    """Why pre-training set ``source`` (:data:`typ.config.PRETRAIN_SOURCES`) cannot be read, or None."""
+    parts = ("colwaymo", "source") if source == "both" else (source,)
+    return next((f"{part}: {reason}" if source == "both" else reason
+                 for part in parts if (reason := unavailable(getattr(roots, part)))), None)
 
 
 class Benchmark:
@@ -280,8 +292,10 @@ def read_inputs(cfg: FusionConfig, roots: Roots, data: str) -> Inputs:
         ds = FusionDataset(roots.colwaymo, cav_extent=cfg.generated_extent, **kw)
     elif data == "source":
         ds = FusionDataset(roots.source, **kw)
+    elif data == "both":                 # the generated target's frames, then the source's
+        return Inputs(read_inputs(cfg, roots, "colwaymo").samples + read_inputs(cfg, roots, "source").samples, cfg)
     else:
-        raise TypError("fusion", "data", "real, real-<n>, generated, colwaymo or source", data)
+        raise TypError("fusion", "data", "real, real-<n>, generated, colwaymo, source or both", data)
     return Inputs(list(ds), cfg)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from models.registry import METHODS
+from tasks.fusion import TABLE3_PAIRS
 from tasks.fusion_score import BANDS as SCORED_BANDS, IOU_THRESHOLDS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
@@ -25,7 +26,8 @@ COMPOSE_TEXT = {"generated": "TYP's sample alone",
                           "elsewhere",
                 "cast": "one scene of the ego's surfaces where it saw and TYP's cells elsewhere, cast with the "
                         "cooperating agent's LiDAR"}
-PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)"}
+PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)",
+            "both": "generated target + source sim"}
 
 
 def _iv(c: dict | None) -> str:
@@ -104,7 +106,7 @@ def targets(results: dict) -> dict:
         and row["oracle"]["ap50"]["overall"] and row["oracle"]["ap50"]["overall"]["value"] > 0
         and row["generated"]["ap50"]["overall"]}
     d3 = results.get("table3_differences", {})
-    for pair in ("colwaymo-scratch", "source-scratch", "colwaymo-source"):
+    for pair in (f"{row}-{base}" for row, base in TABLE3_PAIRS):
         by_set = {ft: {m: None if (d3.get(m, {}).get(pair) or {}).get(ft) is None else d3[m][pair][ft]["low"] > 0
                        for m in t3} for ft in results.get("finetune_sets", {}) if ft != "0"}
         if any(v is not None for row in by_set.values() for v in row.values()):
@@ -201,8 +203,8 @@ def report_markdown(results: dict, cfg: FusionConfig) -> str:
                                                            for _, b in (BANDS[0], BANDS[3]))], rows3)]
     d3 = results.get("table3_differences", {})
     if d3:
-        pairs = {"colwaymo-scratch": "generated target − scratch", "source-scratch": "source sim − scratch",
-                 "colwaymo-source": "generated target − source sim"}
+        short = {**PRETRAIN, "colwaymo": "generated target", "source": "source sim"}
+        pairs = {f"{row}-{base}": f"{short[row]} − {short[base]}" for row, base in TABLE3_PAIRS}
         cols = [ft for ft in sets if ft != "0"]
         lines += ["", "Paired differences, AP@0.5 overall (the same resampled test scenarios and seeds on both "
                   "sides; \"A beats B\" where the interval is above 0):", "",

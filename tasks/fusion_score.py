@@ -42,7 +42,7 @@ import torch
 from models.fusion import METHODS, compressed
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, boxes_in_range
-from tasks.fusion import TRAINING_JSON, Benchmark, Cell, generated_compose, load_networks
+from tasks.fusion import TABLE3_PAIRS, TRAINING_JSON, Benchmark, Cell, generated_compose, load_networks
 from tasks.fusion_train import Trained
 from typ import distributed
 from typ.boxes_bev import nms_bev
@@ -304,19 +304,19 @@ def robustness(scorer: Scorer, runs: Mapping[str, str]) -> dict:
 
 
 def table3_differences(scorer: Scorer, cells: Sequence[Cell]) -> dict:
-    """Table 3, each pre-training against scratch on the same fine-tuning scenes, and the generated
-    target against source sim pre-training: :func:`paired_difference` of AP@0.5 overall (frame
-    order), ``{method: {"colwaymo-scratch" | "source-scratch" | "colwaymo-source": {column: interval}}}``."""
+    """Table 3's paired differences (:data:`tasks.fusion.TABLE3_PAIRS`: each pre-training against
+    scratch on the same fine-tuning scenes, the generated target and both against source sim):
+    :func:`paired_difference` of AP@0.5 overall (frame order), ``{method: {"<row>-<base>": {column:
+    interval}}}`` for every pair whose two rows were trained."""
     table3 = {(c.method, c.row, c.column): c.run for c in cells if c.table == "table3"}
     scenarios, kw = scorer.inputs().scenarios, {"n_boot": scorer.cfg.bootstrap, "seed": scorer.cfg.seed}
     out: dict = {}
     for (method, row, column), run in table3.items():
-        for base in ("scratch", "source"):
+        for base in (b for r, b in TABLE3_PAIRS if r == row):
             other = table3.get((method, base, column))
-            if row in ("scratch", base) or other is None or (base == "source" and row != "colwaymo"):
-                continue
-            out.setdefault(method, {}).setdefault(f"{row}-{base}", {})[column] = paired_difference(
-                scorer.matches(run, method), scorer.matches(other, method), scenarios, **kw)
+            if other is not None:
+                out.setdefault(method, {}).setdefault(f"{row}-{base}", {})[column] = paired_difference(
+                    scorer.matches(run, method), scorer.matches(other, method), scenarios, **kw)
     return out
 
 

@@ -33,7 +33,7 @@ SMALL = {"methods": list(METHODS),
          "robustness": {"position_std": [0.0, 0.4], "heading_std_deg": [0.0, 0.8], "delay_ms": [0, 100],
                         "quantization_bits": [8, 2]},
          "steps": 2, "pretrain_steps": 2, "warm_start_steps": 1, "checkpoint_every": 1,
-         "finetune_scenes": [1], "seeds": 2, "bootstrap": 50}
+         "pretrain_sources": ["colwaymo", "source", "both"], "finetune_scenes": [1], "seeds": 2, "bootstrap": 50}
 BAND_NAMES = ("overall", "0-30", "30-50", "50-100")
 
 
@@ -117,16 +117,31 @@ def test_every_oracle_and_generated_cell_holds_a_number(stage, project):
     assert "ap50_global" not in results["tables"]["table3"]["late"]["scratch"]["1"]
     t3 = results["tables"]["table3"]
     for method in METHODS:
-        assert set(t3[method]) == {"scratch", "colwaymo", "source"}
+        assert set(t3[method]) == {"scratch", "colwaymo", "source", "both"}
         assert set(t3[method]["scratch"]) == {"1", "all"}
-        assert set(t3[method]["colwaymo"]) == set(t3[method]["source"]) == {"0", "1", "all"}
+        assert set(t3[method]["colwaymo"]) == set(t3[method]["source"]) == set(t3[method]["both"]) == {"0", "1", "all"}
         assert all(_numbers(c) for cols in t3[method].values() for c in cols.values())
+    # Table 3's paired differences: every pair whose rows were trained, each the two cells' difference
+    d3 = results["table3_differences"]
+    assert set(d3) == set(METHODS)
+    for method, by_pair in d3.items():
+        assert set(by_pair) == {"colwaymo-scratch", "source-scratch", "both-scratch", "colwaymo-source", "both-source"}
+        for pair, by_column in by_pair.items():
+            row, base = pair.split("-")
+            assert set(by_column) == set(t3[method][row]) & set(t3[method][base]), (method, pair)
+            for column, iv in by_column.items():
+                expected = (t3[method][row][column]["ap50"]["overall"]["value"]
+                            - t3[method][base][column]["ap50"]["overall"]["value"])
+                assert iv["value"] == pytest.approx(expected, abs=2e-4), (method, pair, column)
+                assert iv["low"] <= iv["value"] <= iv["high"]
     # scratch on all scenes is the oracle run itself; no and late fusion one network
     assert t3["late"]["scratch"]["all"]["ap50"] == t1["late"]["oracle"]["ap50"]
     assert "scratchall-late" not in bench.plan.runs and "oracle-none" not in bench.plan.runs
     # one pre-training per (source, network) serves every fine-tuning size
-    pre = [r for r in bench.plan.runs.values() if r.name.startswith("pretrain-colwaymo")]
-    assert sorted(r.method for r in pre) == sorted(["late", "early", "attfuse", "v2xvit"])
+    for source in ("colwaymo", "source", "both"):
+        pre = [r for r in bench.plan.runs.values() if r.name.startswith(f"pretrain-{source}-")]
+        assert sorted(r.method for r in pre) == sorted(["late", "early", "attfuse", "v2xvit"])
+        assert {r.data for r in pre} == {source}
     _check_table3_budgets(bench.plan, cfg)
     # warm start: AttFuse began from the single-agent detector of the same data, then trained on
     assert bench.plan.runs["oracle-attfuse"].warm == "oracle-late"
@@ -302,7 +317,7 @@ def test_the_tables_of_perfect_agents_score_one(stage, project):
     scorer = Scorer(cfg, bench.test, {run: [perfect] * 2 for run in bench.plan.runs})
     tables = fill_tables(scorer, bench.plan.cells)
     cells = [(t, m, r, c) for t, rows in tables.items() for m, row in rows.items() for r, c in row.items()]
-    assert len(cells) == len(list(METHODS)) * (1 + 1 + 3) - 1    # table1: ego/oracle + generated; table3: 3 rows
+    assert len(cells) == len(list(METHODS)) * (1 + 1 + 4) - 1    # table1: ego/oracle + generated; table3: 4 rows
     gts = [s.gt_boxes for s in test.samples]
     own_car = sum(int((np.abs(g[:, :2]).max(1) < 1.0).sum()) for g in gts)
     assert own_car > 0
@@ -354,12 +369,27 @@ def test_table3_fine_tunes_with_scratch_budget_on_the_same_scenes(monkeypatch):
     assert [F.subset_steps(100, n, 7) for n in (None, 7, 1, 0)] == [100, 100, 14, 1]
 
 
+def test_both_pretrains_on_the_generated_target_and_the_source_together(project):
+    # one training set of the generated target's frames (cooperating labels cut to the generated
+    # extent, as when it is read alone) followed by the source's, each sample as read on its own
+    root, cfg = project
+    roots = F.Roots.from_config(cfg, root)
+    parts = [F.read_inputs(cfg, roots, data).samples for data in ("colwaymo", "source")]
+    both = F.read_inputs(cfg, roots, "both").samples
+    assert len(both) == sum(map(len, parts)) and min(map(len, parts)) > 0
+    for a, b in zip(both, parts[0] + parts[1]):
+        assert (a.scenario, a.timestamp, a.agent_ids) == (b.scenario, b.timestamp, b.agent_ids)
+        assert np.array_equal(a.gt_boxes, b.gt_boxes) and all(np.array_equal(x, y) for x, y in zip(a.clouds, b.clouds))
+    assert {s.scenario.split("_")[0] for s in both} == {"target", "source"}
+
+
 def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):
     root, cfg = project
     shutil.copytree(root / "data" / "sim", tmp_path / "data" / "sim")
     cfg = dataclasses.replace(cfg, methods=("none", "early"), seeds=1)
     plan = F.plan(cfg, F.Roots.from_config(cfg, tmp_path))
     assert "does not exist" in plan.skipped["table1/generated"] and "table3/colwaymo" in plan.skipped
+    assert plan.skipped["table3/both"].startswith("colwaymo: ") and "does not exist" in plan.skipped["table3/both"]
     assert {c.row for c in plan.cells if c.table == "table3"} == {"source", "scratch"}
     assert {c.row for c in plan.cells if c.table == "table1"} == {"ego", "oracle"}
     text = R.report_markdown({"tables": {}, "robustness": {"levels": {}, "methods": {}, "applied_delay_ms": [],
@@ -378,6 +408,8 @@ def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):
     ({"robustness": {"delay_ms": [0, 150]}}, "fusion.robustness.delay_ms"),
     ({"finetune_scenes": [0]}, "fusion.finetune_scenes"),
     ({"score_threshold": 1.5}, "fusion.score_threshold"),
+    ({"pretrain_sources": ["both", "both"]}, "fusion.pretrain_sources"),
+    ({"pretrain_sources": ["opv2v"]}, "fusion.pretrain_sources[0]"),
     ({"augment": {"scale": [1.1, 0.9]}}, "fusion.augment.scale"),
     ({"seeds": 0}, "fusion.seeds"),
     ({"lr_schedule": "step"}, "fusion.lr_schedule"),

@@ -30,8 +30,9 @@ from typ.config.data import (AZIMUTH_STEP_DEG, DomainSimulation, ElevationRule, 
 from typ.config.generation import (COMPOSE, AdaptConfig, AutoencoderConfig, CastConfig, GenerateConfig, GenerateSet,
                                    PostprocessConfig, SelftrainConfig, Stage1Config, Stage2Config, UNetConfig,
                                    VQVAEStageConfig)  # noqa: F401
-from typ.config.detection import (AugmentConfig, DetectorConfig, FUSION_METHODS, FusionConfig, RobustnessConfig,
-                                  SSC_METHODS, SscConfig, SscNetworkConfig, SscNoisyConfig, V2XViTConfig)  # noqa: F401
+from typ.config.detection import (AugmentConfig, DetectorConfig, FUSION_METHODS, PRETRAIN_SOURCES, FusionConfig,
+                                  RobustnessConfig, SSC_METHODS, SscConfig, SscNetworkConfig, SscNoisyConfig,
+                                  V2XViTConfig)  # noqa: F401
 from typ.config.ddpm import (DdpmBevConfig, DdpmConfig, DdpmRangeConfig, DdpmRunConfig, FeatureNetConfig,
                              LatentRouteConfig, PixelUNetConfig, _check_samplers)  # noqa: F401
 from typ.config.run import (Config, EvaluateConfig, RuntimeConfig, ServeConfig, TrackingConfig)  # noqa: F401

@@ -3,7 +3,7 @@ and ``ssc`` (V2VSSC)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 from models.registry import METHODS
 from typ.config.base import _check_methods, _positive_fields
@@ -119,6 +119,13 @@ class AugmentConfig:
 FUSION_METHODS = tuple(METHODS)
 
 
+#: Table 3's pre-training sets (TYP §4.5), each a row of the table: the generated target split (the
+#: ColWaymo analogue), the simulated source domain (the OPV2V analogue), or the two together in one
+#: training set (the same ``pretrain_steps``, so each is seen half as often)
+PretrainSource = Literal["colwaymo", "source", "both"]
+PRETRAIN_SOURCES: tuple[str, ...] = get_args(PretrainSource)
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Stage ``fusion`` (TYP §4.2–4.5, Tables 1–3; V2VSSC §IV): collaborative detection benchmark.
@@ -129,7 +136,8 @@ class FusionConfig:
     set); early and intermediate fusion start from it (``warm_start``) and train
     ``warm_start_steps`` more at ``finetune_lr``, or from scratch for ``steps`` /
     ``pretrain_steps`` like it (off, as OpenCOOD trains them). Table 3 fine-tunes a pre-trained
-    network on each of ``finetune_scenes`` and on all N real_cav training scenarios with the steps
+    network (pre-trained on each of ``pretrain_sources``: :data:`PRETRAIN_SOURCES`) on each of
+    ``finetune_scenes`` and on all N real_cav training scenarios with the steps
     training from scratch on the same scenarios takes (TYP §4.5: the paper's arms differ only in
     where they start): on n of the N scenarios, every run trains n / N of its steps on all N (the
     same epochs, as OpenCOOD trains by epochs), the fine-tuned single-agent detector at
@@ -158,6 +166,7 @@ class FusionConfig:
     warmup: float
     steps: int
     pretrain_steps: int
+    pretrain_sources: tuple[PretrainSource, ...]
     finetune_scenes: tuple[int, ...]
     warm_start: bool
     warm_start_steps: int
@@ -192,6 +201,9 @@ class FusionConfig:
         _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
                          "pretrain_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
                          "seeds", "generated_extent", "bootstrap")
+        if len(set(self.pretrain_sources)) != len(self.pretrain_sources):
+            raise TypError(where, f"{name}.pretrain_sources", f"each of {'/'.join(PRETRAIN_SOURCES)} at most once",
+                           list(self.pretrain_sources))
         if any(n < 1 for n in self.finetune_scenes):
             raise TypError(where, f"{name}.finetune_scenes", "scenario counts >= 1 (0 and all are always run)",
                            list(self.finetune_scenes))
