@@ -54,6 +54,8 @@ from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
 from typ.io import SCENARIO_MANIFEST, read_json_or_none
 
+#: what pre-training set ``both`` is made of, in this order
+BOTH_PARTS = ("colwaymo", "source")
 #: Table 3's paired differences, (row, base): each pre-training against scratch, the generated target
 #: against source sim (the paper's realism claim) and both against source sim (what adding the
 #: generated data to a simulated set gains); a pair is scored where both rows were trained
@@ -203,7 +205,7 @@ def plan(cfg: FusionConfig, roots: Roots) -> Plan:
 
 def pretraining_unavailable(roots: Roots, source: str) -> str | None:
     """Why pre-training set ``source`` (:data:`typ.config.PRETRAIN_SOURCES`) cannot be read, or None."""
-    parts = ("colwaymo", "source") if source == "both" else (source,)
+    parts = BOTH_PARTS if source == "both" else (source,)
     return next((f"{part}: {reason}" if source == "both" else reason
                  for part in parts if (reason := unavailable(getattr(roots, part)))), None)
 
@@ -293,7 +295,7 @@ def read_inputs(cfg: FusionConfig, roots: Roots, data: str) -> Inputs:
     elif data == "source":
         ds = FusionDataset(roots.source, **kw)
     elif data == "both":                 # the generated target's frames, then the source's
-        return Inputs(read_inputs(cfg, roots, "colwaymo").samples + read_inputs(cfg, roots, "source").samples, cfg)
+        return Inputs([s for part in BOTH_PARTS for s in read_inputs(cfg, roots, part).samples], cfg)
     else:
         raise TypError("fusion", "data", "real, real-<n>, generated, colwaymo, source or both", data)
     return Inputs(list(ds), cfg)

@@ -32,12 +32,13 @@ def _positive(where: str, name: str, value) -> None:
         raise TypError(where, name, "a value > 0", value)
 
 
-def _check_methods(where: str, name: str, methods, allowed: tuple[str, ...]) -> None:
-    """``methods``: at least one, each of ``allowed`` and none twice; the error names the entry."""
+def _check_methods(where: str, name: str, methods, allowed: tuple[str, ...], *, allow_empty: bool = False) -> None:
+    """``methods``: at least one (none too with ``allow_empty``), each of ``allowed`` and none twice;
+    the error names the entry."""
     for i, method in enumerate(methods):
         if method not in allowed:
             raise TypError(where, f"{name}[{i}]", f"one of {list(allowed)}", method)
-    if not methods or len(set(methods)) != len(methods):
+    if (not methods and not allow_empty) or len(set(methods)) != len(methods):
         raise TypError(where, name, f"each of {'/'.join(allowed)} at most once", list(methods))
 
 

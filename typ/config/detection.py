@@ -201,9 +201,7 @@ class FusionConfig:
         _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
                          "pretrain_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
                          "seeds", "generated_extent", "bootstrap")
-        if len(set(self.pretrain_sources)) != len(self.pretrain_sources):
-            raise TypError(where, f"{name}.pretrain_sources", f"each of {'/'.join(PRETRAIN_SOURCES)} at most once",
-                           list(self.pretrain_sources))
+        _check_methods(where, f"{name}.pretrain_sources", self.pretrain_sources, PRETRAIN_SOURCES, allow_empty=True)
         if any(n < 1 for n in self.finetune_scenes):
             raise TypError(where, f"{name}.finetune_scenes", "scenario counts >= 1 (0 and all are always run)",
                            list(self.finetune_scenes))
