@@ -45,14 +45,14 @@ import numpy as np
 import torch
 
 from models.fusion import NoFusion, compressed, get_method
-from models.ssc import class_weights, merge_max_confidence, warp_to_ego
+from models.ssc import class_argmax, class_weights, merge_max_confidence, warp_to_ego
 from tasks.fusion_data import FusionDataset, FusionSample, unavailable
 from tasks.ssc_data import FIGURES, NETWORK, N_CLASSES, ego_map, ssc_dataset
 from tasks.ssc_train import SscNetworks, _inputs, generated_root, train_arms, train_seed, training_set
 from tasks.training import Trainings
 from typ.config import SscConfig
 from typ.errors import TypError
-from typ.metrics.intervals import bootstrap
+from typ.metrics.intervals import bootstrap, bootstrap_figures
 from typ.metrics.ssc import SSC_CLASSES, figure_of, ssc_confusion, ssc_scores
 from typ.ssc import SSC_GRID
 # the stage's data and training, re-exported: ``tasks.ssc`` is the stage's one module for its callers
@@ -93,7 +93,7 @@ def predict(nets: SscNetworks, sample: FusionSample, method: str, *, bits: int |
     pillars, kw = _inputs(nets.networks["single"].detector, method, sample)
     with compressed(module, bits):
         logits = module(pillars, **kw)["occ"]
-    return logits[0].argmax(0).numpy().astype(np.uint8)
+    return class_argmax(logits[0]).numpy().astype(np.uint8)
 
 
 def confusions(nets: SscNetworks, ds: FusionDataset, method: str, *, bits: int | None = None) -> tuple[np.ndarray, dict]:
@@ -118,13 +118,12 @@ def intervals(conf: np.ndarray, *, n_boot: int, seed: int = 0,
     if conf.ndim == 3:
         conf = conf[None]
 
-    def stat_of(name: str):
-        def stat(c: np.ndarray, s: np.ndarray) -> float:
-            return float(np.mean([figure_of(ssc_scores(conf[k][c].sum(0)), name) for k in s]))
-        return stat
+    def stat(c: np.ndarray, s: np.ndarray) -> list[float]:
+        scores = [ssc_scores(conf[k][c].sum(0)) for k in s]
+        return [float(np.mean([figure_of(sc, name) for sc in scores])) for name in figures]
 
-    return {name: bootstrap(stat_of(name), conf.shape[1], conf.shape[0], n_boot=n_boot, seed=seed).to_dict()
-            for name in figures}
+    ivs = bootstrap_figures(stat, conf.shape[1], conf.shape[0], n_boot=n_boot, seed=seed)
+    return {name: iv.to_dict() for name, iv in zip(figures, ivs)}
 
 
 #: the figures given per seed and at each robustness level

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from typ.errors import TypError
-from typ.metrics.intervals import Interval, bootstrap, hierarchical_bootstrap, mean_of_means, pooled_ratio
+from typ.metrics.intervals import (Interval, bootstrap, bootstrap_figures, hierarchical_bootstrap, mean_of_means,
+                                  pooled_ratio)
 
 
 def test_pooled_ratio_point_estimate_is_the_pooled_figure_not_the_mean_of_ratios():
@@ -103,3 +104,26 @@ def test_hierarchical_bootstrap_names_bad_sizes():
         hierarchical_bootstrap(lambda s, g, r: 0.0, [3, 0], 4)
     with pytest.raises(TypError, match="method"):
         hierarchical_bootstrap(lambda s, g, r: 0.0, [3], 4, method="bca")
+
+
+@pytest.mark.parametrize("n_seeds", [1, 3])
+def test_figures_of_one_resampling_equal_their_own_bootstraps(n_seeds):
+    """bootstrap_figures draws each replicate once for all figures: figure i's interval is
+    bit-for-bit bootstrap's of that figure alone with the same seed, NaN replicates left out alike."""
+    rng = np.random.default_rng(4)
+    tp, den = rng.integers(0, 5, (n_seeds, 9)).astype(float), rng.integers(1, 9, (n_seeds, 9)).astype(float)
+    tp[:, 2] = 0
+
+    def figures(c, s):
+        pooled_tp, pooled_den = tp[s][:, c].sum(1), den[s][:, c].sum(1)
+        # the last figure is undefined on replicates that drew scene 2 only or no tp at all
+        return [float(np.mean(pooled_tp / pooled_den)), float(np.mean(pooled_den)),
+                float(np.mean(pooled_tp / pooled_tp)) if (pooled_tp > 0).all() else float("nan")]
+
+    ivs = bootstrap_figures(figures, 9, n_seeds, n_boot=300, seed=7, method="percentile")
+    assert len(ivs) == 3
+    for i, iv in enumerate(ivs):
+        alone = bootstrap(lambda c, s, i=i: figures(c, s)[i], 9, n_seeds, n_boot=300, seed=7)
+        assert (iv.value, iv.low, iv.high) == (alone.value, alone.low, alone.high)
+    assert ivs[0].low < ivs[0].value < ivs[0].high      # a real spread, not a constant
+    assert ivs[2].value == 1.0 and ivs[2].low == ivs[2].high == 1.0

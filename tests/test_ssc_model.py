@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from models.fusion import LateFusion, NoFusion
-from models.ssc import (SSC_LIDAR_RANGE, OccupancyHead, class_weights, merge_max_confidence, ssc_detector,
+from models.ssc import (SSC_LIDAR_RANGE, OccupancyHead, class_argmax, class_weights, merge_max_confidence, ssc_detector,
                         warp_to_ego)
 from typ.errors import TypError
 from typ.ssc import SSC_GRID
@@ -118,3 +118,14 @@ def test_a_few_steps_of_weighted_cross_entropy_fit_one_map():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
+
+
+def test_class_argmax_is_torch_argmax_over_the_class_axis_ties_included():
+    torch.manual_seed(0)
+    logits = torch.randn(7, 12, 10, 5)
+    logits[:, 0, 0, 0] = 1.0                      # a seven-way tie: class 0, as torch.argmax
+    logits[3, 1, 1, 1] = logits[5, 1, 1, 1] = 9.0  # a tie between 3 and 5: 3
+    labels = class_argmax(logits)
+    assert labels.shape == (12, 10, 5)
+    assert torch.equal(labels, logits.argmax(0))
+    assert labels[0, 0, 0] == 0 and labels[1, 1, 1] == 3

@@ -87,20 +87,32 @@ def bootstrap(stat: Callable[[np.ndarray, np.ndarray], float], n_clusters: int, 
     the whole set, e.g. ``IoU = sum(tp[c]) / sum(tp[c] + fp[c] + fn[c])``. Replicates whose
     figure is undefined (NaN, e.g. no true voxel drawn) are left out of the percentiles.
     """
+    return bootstrap_figures(lambda c, s: (stat(c, s),), n_clusters, n_seeds, n_boot=n_boot, level=level,
+                             seed=seed, method=method)[0]
+
+
+def bootstrap_figures(stat: Callable[[np.ndarray, np.ndarray], Sequence[float]], n_clusters: int, n_seeds: int = 1,
+                      *, n_boot: int = 1000, level: float = 0.95, seed: int = 0,
+                      method: str = "percentile") -> list[Interval]:
+    """:func:`bootstrap` of several figures of the same resamples: ``stat`` returns one value per
+    figure, called once per replicate. Figure i's interval is exactly :func:`bootstrap`'s for
+    ``lambda c, s: stat(c, s)[i]`` with the same ``seed`` (the draws do not depend on the figure),
+    for one evaluation of what the figures share (a pooled confusion matrix, say) instead of one
+    per figure."""
     if n_clusters < 1:
         raise TypError("bootstrap", "n_clusters", "at least one scene", n_clusters)
     if n_seeds < 1:
         raise TypError("bootstrap", "n_seeds", "at least one seed", n_seeds)
     _check(level, method)
     clusters, seeds = np.arange(n_clusters), np.arange(n_seeds)
-    value = float(stat(clusters, seeds))
+    values = np.asarray(stat(clusters, seeds), dtype=np.float64)
     rng = np.random.default_rng(seed)
-    reps = np.empty(n_boot)
+    reps = np.empty((n_boot, len(values)))
     for b in range(n_boot):
         c = rng.integers(0, n_clusters, n_clusters)
         s = rng.integers(0, n_seeds, n_seeds) if n_seeds > 1 else seeds
         reps[b] = stat(c, s)
-    return _interval(value, reps[np.isfinite(reps)], level, method)
+    return [_interval(float(v), r[np.isfinite(r)], level, method) for v, r in zip(values, reps.T)]
 
 
 def hierarchical_bootstrap(metric: Callable[[int, np.ndarray, np.ndarray], float], n_generated: Sequence[int],
