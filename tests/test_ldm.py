@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 import torch
 from diffusers import T2IAdapter
+from diffusers.models.attention_processor import AttnProcessor2_0
 
-from models.ldm import LatentDiffusion
+from models.ldm import LatentDiffusion, OneTokenAttnProcessor
 from models.postprocess import postprocess
 from models.time_embedding import FourierTimeEmbedding
 
@@ -90,3 +91,35 @@ def test_tune_thresholds_finds_the_best_pair():
     # threshold 0.2 keeps {0.6, 0.3, 0.25} (IoU 2/3); 0.5 keeps {0.6} (IoU 1/2): 0.2 wins
     assert (best["low"], best["high"]) == (0.2, 0.2) and best["iou"] == pytest.approx(2 / 3)
     assert np.isfinite(best["iou"])
+
+
+@pytest.mark.parametrize("self_attention", [False, True])
+def test_one_token_attention_is_diffusers_attention(self_attention):
+    """The short-cut processor gives diffusers' own attention's output and gradients: attention to
+    the one context token is to_out(to_v(context)) in every cell. With self_attention the
+    self-attention layers fall back to diffusers' processor."""
+    fast = _ldm(self_attention=self_attention)
+    assert {type(p) for p in fast.unet.attn_processors.values()} == {OneTokenAttnProcessor}
+    plain = _ldm(self_attention=self_attention)
+    plain.unet.set_attn_processor(AttnProcessor2_0())
+    assert all(torch.equal(a, b) for a, b in zip(fast.state_dict().values(), plain.state_dict().values()))
+    torch.manual_seed(1)
+    z, t, c = torch.randn(2, 8, 16, 16), torch.tensor([40, 700]), torch.randn(2, 3, 16, 16)
+    grads = []
+    for m in (fast, plain):
+        out = m(z, t, c)
+        (out ** 2).mean().backward()
+        grads.append({n: p.grad for n, p in m.named_parameters()})
+        grads[-1]["out"] = out.detach()
+    assert torch.allclose(grads[0]["out"], grads[1]["out"], rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(grads[0]["out"], torch.zeros_like(grads[0]["out"]))
+    skipped = []
+    for name, g in grads[1].items():
+        mine = grads[0][name]
+        if mine is None:     # to_q, to_k and the norm before them: softmax over one key is 1 whatever they give
+            assert torch.count_nonzero(g) == 0, name
+            skipped.append(name)
+        else:
+            assert torch.allclose(mine, g, rtol=1e-4, atol=1e-7), name
+    assert skipped and all(".to_q." in n or ".to_k." in n or ".norm" in n for n in skipped)
+    assert not any(".attn1.to_q." in n for n in skipped) if self_attention else True
