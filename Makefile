@@ -67,12 +67,14 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
 
 # sampling needs the trained models of `make run` (artifacts/), pipeline its metrics (the
-# default data's skipping; its dvc runs are in a throwaway copy); voxelize and pcd_lzf need nothing.
+# default data's skipping; its dvc runs are in a throwaway copy); voxelize, pcd_lzf and attention
+# need nothing.
 # report.py gathers every reports/bench_*.md into reports/bench.md, with the pages of
 # reports/gpu/ (bench/gpu.py on a GPU machine; not rerun here).
 bench: $(STAMP)
 	$(BIN)/python bench/voxelize.py --out reports
 	$(BIN)/python bench/pcd_lzf.py --out reports
+	$(BIN)/python bench/attention.py --out reports
 	test -f artifacts/stage1/model.pt || $(BIN)/typ with-server $(BIN)/dvc repro
 	$(BIN)/python bench/sampling.py --out reports
 	$(BIN)/python bench/pipeline.py --out reports
