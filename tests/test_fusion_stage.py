@@ -249,6 +249,26 @@ def test_trainings_on_two_processes_give_the_bytes_of_one(project, tmp_path):
     assert saved[1] == saved[2]
 
 
+def test_the_pool_starts_the_longest_chain_first(project):
+    """steps_left: a run's steps plus the longest chain of runs fine-tuned or warm-started from it,
+    so tiny's Table 3 chain (pre-train 400 -> fine-tune on all scenes 2000 -> AttFuse 200) goes
+    before Table 1's oracle (2000 -> 200), and a leaf counts only itself."""
+    root, cfg = project
+    cfg = dataclasses.replace(cfg, methods=("none", "late", "attfuse"), seeds=1, steps=2000, pretrain_steps=400,
+                              warm_start_steps=200, finetune_scenes=(1,), pretrain_sources=("colwaymo",))
+    bench = F.Benchmark(cfg, F.Roots.from_config(cfg, root), root / "unused")
+    jobs = [F.Job(run, 0, bench.out) for run in bench.plan.runs.values()]
+    left = dict(zip([j.run.name for j in jobs], F.steps_left(jobs)))
+    n_all = len(list_scenarios(F.Roots.from_config(cfg, root).real_train))
+    one = F.subset_steps(2000, 1, n_all) + F.subset_steps(200, 1, n_all)
+    assert left["oracle-attfuse"] == 200 and left["oracle-late"] == 2200
+    assert left["finetuneall-colwaymo-late"] == 2200
+    assert left["pretrain-colwaymo-late"] == 400 + max(2200, one, 200)
+    assert left["pretrain-colwaymo-late"] > left["oracle-late"]
+    order = sorted(range(len(jobs)), key=lambda i: (-F.steps_left(jobs)[i], i))
+    assert jobs[order[0]].run.name == "pretrain-colwaymo-late"
+
+
 def test_bad_worker_count_fails_at_load():
     with pytest.raises(TypError) as err:
         config_from_dict({"fusion": {"processes": -1}})
