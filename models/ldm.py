@@ -123,8 +123,8 @@ class OneTokenAttnProcessor(AttnProcessor2_0):
 
     softmax over one key is exactly 1, so ``softmax(q k^T / sqrt(d)) v`` is ``v`` for every query:
     the output is ``to_out(to_v(context))``, the same for every cell of a sample, whatever the
-    queries. Only that one row is computed and broadcast; ``to_q`` and the attention itself are
-    skipped (their gradients are zero anyway). Anything else (self-attention, a mask, a spatial or
+    queries. Only that one row is computed and broadcast; ``to_q``, ``to_k`` and the attention
+    itself are skipped (their gradients are zero anyway). Anything else (self-attention, a mask, a spatial or
     group norm, a residual connection, 4-d input) runs diffusers' own :class:`AttnProcessor2_0`.
     """
 

@@ -49,7 +49,7 @@ from typ.boxes_bev import nms_bev
 from typ.config import FusionConfig
 from typ.io import read_json_or_none
 from typ.metrics.detection import FrameMatches, ap_of_frames, frame_matches, pr_curves
-from typ.metrics.intervals import bootstrap
+from typ.metrics.intervals import Interval, bootstrap, bootstrap_figures
 
 #: the AP figures, by name: the BEV IoU a detection must reach. A new one is an entry here (and
 #: its column in the reports and metrics follows)
@@ -96,11 +96,14 @@ def _frames_of(scenarios: Sequence[str]) -> list[np.ndarray]:
     return [np.flatnonzero(np.asarray(scenarios) == n) for n in sorted(set(scenarios))]
 
 
-def _interval(stat: Callable[[np.ndarray, np.ndarray], float], n_scenarios: int, n_seeds: int, *, n_boot: int,
-              seed: int) -> dict | None:
-    iv = bootstrap(stat, n_scenarios, n_seeds, n_boot=n_boot, seed=seed)
+def _cell(iv: Interval) -> dict | None:
     return None if not math.isfinite(iv.value) else \
         {"value": _finite(iv.value), "low": _finite(iv.low), "high": _finite(iv.high)}
+
+
+def _interval(stat: Callable[[np.ndarray, np.ndarray], float], n_scenarios: int, n_seeds: int, *, n_boot: int,
+              seed: int) -> dict | None:
+    return _cell(bootstrap(stat, n_scenarios, n_seeds, n_boot=n_boot, seed=seed))
 
 
 def ap_cell(per_seed: Sequence[Mapping[str, FrameMatches]], scenarios: Sequence[str], *, n_boot: int,
@@ -111,17 +114,20 @@ def ap_cell(per_seed: Sequence[Mapping[str, FrameMatches]], scenarios: Sequence[
     ``"per_seed"``: each seed's AP@0.5 overall, and with ``global_sort`` ``"<key>_global"``:
     ``{"overall": ...}`` with the detections of all frames ranked by score."""
     frames_of = _frames_of(scenarios)
-    out: dict = {}
     ranked = [(key, key, False) for key in keys] + ([(f"{key}_global", key, True) for key in keys]
                                                     if global_sort else [])
-    for name, key, by_score in ranked:
-        out[name] = {}
-        for band in (bands if not by_score else ("overall",)):
-            def stat(c: np.ndarray, s: np.ndarray, key=key, band=band, by_score=by_score) -> float:
-                frames = np.concatenate([frames_of[j] for j in c])
-                return float(np.mean([ap_of_frames(per_seed[k][key], band, frames, by_score) for k in s]))
+    figures = [(name, key, band, by_score) for name, key, by_score in ranked
+               for band in (bands if not by_score else ("overall",))]
 
-            out[name][band] = _interval(stat, len(frames_of), len(per_seed), n_boot=n_boot, seed=seed)
+    def stat(c: np.ndarray, s: np.ndarray) -> list[float]:   # every figure of one resample of scenarios
+        frames = np.concatenate([frames_of[j] for j in c])
+        return [float(np.mean([ap_of_frames(per_seed[k][key], band, frames, by_score) for k in s]))
+                for _, key, band, by_score in figures]
+
+    out: dict = {name: {} for name, _, _ in ranked}
+    for (name, _, band, _), iv in zip(figures, bootstrap_figures(stat, len(frames_of), len(per_seed),
+                                                                  n_boot=n_boot, seed=seed)):
+        out[name][band] = _cell(iv)
     all_frames = np.arange(len(scenarios))
     out["per_seed"] = [_finite(ap_of_frames(m["ap50"], "overall", all_frames)) for m in per_seed]
     return out
