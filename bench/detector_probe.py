@@ -10,7 +10,7 @@ and compare it with the stage's networks by the paired bootstrap of the evaluate
 Any other method name: that method warm-started from each seed's saved oracle single-agent network
 (``<fusion.out>/models/oracle-late/seed<k>``) with each override, every training seed of the
 stage, scored against late fusion on the same networks: the method's AP and its paired
-difference to late fusion, frame order and ranked by score. The trainings run two at a time on
+difference to late fusion (frame order and ranked by score) and to no fusion. The trainings run two at a time on
 one thread each, as the fusion stage runs them. Networks go to /tmp/detector_probe/ (their
 checkpoints resume); the workspace is not touched. The tables of reports/fusion_ablation.md
 come from here.
@@ -100,6 +100,7 @@ def main() -> None:
     kw = {"n_boot": base.bootstrap, "seed": base.seed}
     scenarios = scorer.inputs().scenarios
     late = scorer.matches(f"oracle-{SINGLE_AGENT}", SINGLE_AGENT)
+    alone = scorer.matches(f"oracle-{SINGLE_AGENT}", "none")
     for run in [f"oracle-{SINGLE_AGENT}", f"oracle-{method}", *variants]:
         m = SINGLE_AGENT if run == f"oracle-{SINGLE_AGENT}" else method
         c = scorer.cell(run, m, global_sort=True)
@@ -108,7 +109,8 @@ def main() -> None:
         if m != SINGLE_AGENT:
             mine = scorer.matches(run, m)
             text += (f"; minus late: {fmt(paired_difference(mine, late, scenarios, **kw))}, ranked by score "
-                     f"{fmt(paired_difference(mine, late, scenarios, global_sort=True, **kw))}")
+                     f"{fmt(paired_difference(mine, late, scenarios, global_sort=True, **kw))}; minus no fusion: "
+                     f"{fmt(paired_difference(mine, alone, scenarios, **kw))}")
         print(text, flush=True)
 
 
