@@ -10,10 +10,10 @@ and compare it with the stage's networks by the paired bootstrap of the evaluate
 Any other method name: that method warm-started from each seed's saved oracle single-agent network
 (``<fusion.out>/models/oracle-late/seed<k>``) with each override, every training seed of the
 stage, scored against late fusion on the same networks: the method's AP and its paired
-difference to late fusion (frame order and ranked by score) and to no fusion. The trainings run two at a time on
-one thread each, as the fusion stage runs them. Networks go to /tmp/detector_probe/ (their
-checkpoints resume); the workspace is not touched. The tables of reports/fusion_ablation.md
-come from here.
+difference to late fusion (frame order and ranked by score) and to no fusion. The trainings run
+two at a time on one thread each, as the fusion stage runs them. Networks go to
+/tmp/detector_probe/ (their checkpoints resume); the workspace is not touched. The tables of
+reports/fusion_ablation.md come from here.
 """
 from __future__ import annotations
 
