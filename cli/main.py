@@ -49,10 +49,11 @@ def _setup_env(root: Path) -> None:
         # names is the user's, with the user's auth. Prefect reads its settings once, when
         # imported: after that (typ called in-process) its client would not send what its
         # temporary server, started later with this environment, asks for
-        from flows.server import api_auth_string
+        from flows.server import api_auth_string, bind_temporary_servers
 
         auth = api_auth_string(Path(os.environ["PREFECT_HOME"]))
         os.environ["PREFECT_SERVER_API_AUTH_STRING"] = os.environ["PREFECT_API_AUTH_STRING"] = auth
+        bind_temporary_servers()   # and a kill -9 of this process ends its temporary server too
     rank = int(os.environ.get("RANK", "0"))
     if rank > 0:  # torchrun: each rank's temporary Prefect server keeps its own sqlite file
         os.environ["PREFECT_HOME"] = str(Path(os.environ["PREFECT_HOME"]) / f"rank-{rank}")
@@ -257,9 +258,33 @@ def _cmd_generate(args) -> int:
     from flows.generate import generate_external
 
     metrics = generate_external(args.format, Path(args.input), Path(args.out), root=root, params=args.params,
-                                references_per_frame=args.references, roadside_units=args.rsu, compose=args.compose)
+                                references_per_frame=args.references, roadside_units=args.rsu, compose=args.compose,
+                                sensor=args.sensor)
     print(f"generated {metrics['references']} reference views for {metrics['frames']} frames "
           f"({metrics['skipped_unchanged']} scenarios unchanged) under {args.out}")
+    return 0
+
+
+def _cmd_novel_view(args) -> int:
+    if args.max_pairs < 0:
+        raise TypError("typ novel-view", "--max-pairs", "a count >= 0 (0: every pair)", args.max_pairs)
+    frames = None
+    if args.frames is not None:
+        first, _, stop = args.frames.partition(":")
+        if not (first.isdigit() and stop.isdigit() and int(first) < int(stop)):
+            raise TypError("typ novel-view", "--frames", "FIRST:STOP, scan numbers with FIRST < STOP", args.frames)
+        frames = (int(first), int(stop))
+    check_folder(args.out, where="typ novel-view", field="--out")
+    root = Path(args.root)
+    _setup_env(root)
+    from flows.novel_view import run_novel_view
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
+    result = run_novel_view(args.format, Path(args.input), Path(args.out), root=root, params=args.params,
+                            sequence=args.sequence, sensor=args.sensor, methods=methods, max_pairs=args.max_pairs,
+                            frames=frames, pictures=not args.no_pictures)
+    print(f"scored {len(result.pairs)} pairs of {result.drive.root.name}/{result.drive.name} "
+          f"({', '.join(result.methods)}) under {args.out}")
     return 0
 
 
@@ -374,17 +399,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=_cmd_dvc_yaml)
     p = sub.add_parser("report", help="write reports/summary.md from the stage metrics and benches")
     p.set_defaults(fn=_cmd_report)
-    p = sub.add_parser("generate", help="turn KITTI / nuScenes / Waymo frames into collaborative OPV2V scenarios "
-                                        "with the trained models")
+    p = sub.add_parser("generate", help="turn KITTI / nuScenes / Waymo frames or drives in the KITTI odometry layout "
+                                        "into collaborative OPV2V scenarios with the trained models")
     p.add_argument("--format", required=True, help=" | ".join(SINGLE_AGENT_FORMATS))
     p.add_argument("--input", required=True, help="KITTI object root, nuScenes folder (bins + info json), "
-                                                  "or Waymo .tfrecord file / folder")
+                                                  "Waymo .tfrecord file / folder, or a KITTI odometry root "
+                                                  "(sequences/<seq>/velodyne, calib.txt, poses.txt)")
+    p.add_argument("--sensor", default=None, help="the LiDAR preset of the frames (default: the format's; "
+                                                  "kitti-odometry: estimated from each drive's first scan)")
     p.add_argument("--out", default="data/generated_external", help="output root (default: data/generated_external)")
     p.add_argument("--references", type=int, default=None, help="reference views per frame (default: params)")
     p.add_argument("--rsu", type=int, default=None, help="roadside units per scenario (default: params)")
     p.add_argument("--compose", default=None, help="generated | hybrid | cast: what a reference view is made of "
                                                    "(default: params' generate.compose)")
     p.set_defaults(fn=_cmd_generate)
+    p = sub.add_parser("novel-view", help="score the views generated from each scan of a real drive for the poses of "
+                                          "its other scans against the real scans there (LiDAR4D's metrics): "
+                                          "OUT/novel_view.json, OUT/novel_view.md and pictures")
+    p.add_argument("--format", required=True, help="kitti-odometry (a drive with a pose per scan)")
+    p.add_argument("--input", required=True, help="a dataset root in the KITTI odometry layout: sequences/<seq>/ with "
+                                                  "velodyne/*.bin, calib.txt (Tr) and poses.txt")
+    p.add_argument("--sequence", default=None, help="the drive, e.g. 00 (default: the only one under sequences/)")
+    p.add_argument("--sensor", default=None, help="the drive's LiDAR preset, e.g. kitti or nuscenes (default: "
+                                                  "estimated from its first scan)")
+    p.add_argument("--out", required=True, help="folder the report, its JSON and the pictures are written to")
+    p.add_argument("--methods", default=None, help="comma-separated subset of copy, resim, hybrid, cast, typ, "
+                                                   "cast_no_typ, map_oracle (default: all)")
+    p.add_argument("--max-pairs", type=int, default=0, help="score only the first N pairs of the pair rule (default 0: "
+                                                            "every pair)")
+    p.add_argument("--frames", default=None, metavar="FIRST:STOP", help="score only pairs of scans FIRST .. STOP-1 "
+                                                                        "(a range the generator did not train on)")
+    p.add_argument("--no-pictures", action="store_true", help="write the JSON and the report only")
+    p.set_defaults(fn=_cmd_novel_view)
     p = sub.add_parser("show", help="PNGs of an OPV2V-layout scenario (simulated, generated or real) or a folder of "
                                     "them: each agent from above, all agents side by side, range images, and for "
                                     "generated agents the ego / x_e' / generated / true / re-simulated / error panels")

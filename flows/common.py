@@ -10,7 +10,6 @@ import importlib
 import os
 import logging
 import re
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -19,7 +18,7 @@ from typing import Callable, Iterator, Sequence
 from tasks.scene_stage import SceneStage
 from typ.config import Config, load_config
 from typ.errors import TypError
-from typ.io import output_lock, remove_stale_temporaries, temporaries, write_json
+from typ.io import output_lock, remove_stale_temporaries, remove_written, temporaries, write_json, written_by
 from typ.tracking import is_main_process, stage_run
 
 log = logging.getLogger("typ")
@@ -278,7 +277,7 @@ def per_scene_stage(stage: str, cfg: Config, root: Path, spec: SceneStage) -> di
 
     Remove temporaries a killed run left under ``spec.out``; ``spec.plan()`` gives the items to
     do and the stale outputs, of which those the stage wrote are deleted and the others kept
-    (:func:`own_stale`); each item runs ``spec.work`` as a Prefect task, except
+    (:func:`remove_stale`); each item runs ``spec.work`` as a Prefect task, except
     those ``spec.unchanged`` settles here (a task costs ~20 ms of orchestration, which was most
     of a no-op stage on a hundred scenes); ``spec.summarize(results)`` gives the stage metrics,
     written to ``metrics/<stage>.json`` for DVC and logged to MLflow. The caller holds the
@@ -288,32 +287,32 @@ def per_scene_stage(stage: str, cfg: Config, root: Path, spec: SceneStage) -> di
         with Timer() as timer:
             cleaned = remove_stale_temporaries(spec.out) if spec.out.exists() else 0
             items, stale = spec.plan()
-            own, kept = own_stale(stage, spec, stale)
-            for path in own:
-                log.info("%s: removing %s: its input is gone", stage, path)
-                shutil.rmtree(path) if path.is_dir() else path.unlink()
-                _remove_empty_parents(path, spec.out)
+            removed = remove_stale(stage, spec.out, stale)
             settled = {i: r for i, item in enumerate(items)
                        if spec.unchanged is not None and (r := spec.unchanged(item, **spec.work_kwargs)) is not None}
             todo = [item for i, item in enumerate(items) if i not in settled]
             ran = iter(per_scene(spec.work, todo, label=spec.label, stage=stage, retries=IO_RETRIES,
                                  **spec.work_kwargs) if todo else [])
             results = [settled[i] if i in settled else next(ran) for i in range(len(items))]
-        return _finish_scenes(stage, run, spec, results, root, removed_stale=len(own), removed_temporaries=cleaned,
-                              kept_not_written_by_typ=len(kept), seconds_total=round(timer.seconds, 3))
+        return _finish_scenes(stage, run, spec, results, root, removed_stale=removed, removed_temporaries=cleaned,
+                              kept_not_written_by_typ=len(stale) - removed, seconds_total=round(timer.seconds, 3))
 
 
-def own_stale(stage: str, spec: SceneStage, stale: list[Path]) -> tuple[list[Path], list[Path]]:
-    """``stale`` split into what the stage wrote (``spec.owned``: to delete) and the rest, which
-    typ did not write and leaves alone (a warning names them: a user's files where the stage's
-    outputs go)."""
-    own, kept = [], []
+def remove_stale(stage: str, out: Path, stale: list[Path]) -> int:
+    """Delete what of ``stale`` the stage wrote (:func:`typ.io.remove_written`: its record matches it)
+    and the folders that leaves empty; the rest is typ's to leave alone: a warning names it (a
+    user's files where the stage's outputs go). Returns how many were deleted."""
+    kept = []
     for path in stale:
-        (own if spec.owned(path) else kept).append(path)
+        if remove_written(path, stage):
+            log.info("%s: removed %s: its input is gone", stage, path)
+            _remove_empty_parents(path, out)
+        else:
+            kept.append(path)
     if kept:
         log.warning("%s: left alone %d path(s) under %s that the stage did not write: %s%s", stage, len(kept),
-                    spec.out, ", ".join(str(p) for p in kept[:5]), " ..." if len(kept) > 5 else "")
-    return own, kept
+                    out, ", ".join(str(p) for p in kept[:5]), " ..." if len(kept) > 5 else "")
+    return len(stale) - len(kept)
 
 
 def _remove_empty_parents(path: Path, top: Path) -> None:
@@ -345,8 +344,7 @@ def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> d
         if spec.out.exists() and next(temporaries(spec.out), None) is not None:
             return None
         items, stale = spec.plan()
-        own, kept = own_stale(stage, spec, stale)
-        if own:
+        if any(written_by(path, stage) for path in stale):
             return None
         results = []
         for item in items:
@@ -355,7 +353,7 @@ def settle_unchanged(stage: str, cfg: Config, root: Path, spec: SceneStage) -> d
             results.append(r)
     with stage_run(stage, cfg, root=root, tags={"typ.prefect": "not started: every scene unchanged"}) as run:
         return _finish_scenes(stage, run, spec, results, root, removed_stale=0, removed_temporaries=0,
-                              kept_not_written_by_typ=len(kept), seconds_total=round(timer.seconds, 3))
+                              kept_not_written_by_typ=len(stale), seconds_total=round(timer.seconds, 3))
 
 
 def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path(".")) -> dict | None:
@@ -366,7 +364,7 @@ def settle_stage(stage: str, *, params: str = "params.yaml", root: Path = Path("
         return None
     cfg = load_config(root / params)
     spec = importlib.import_module(f"tasks.{stage}").scene_stage(cfg, root)
-    with output_lock(root, stage, spec.out):
+    with output_lock(stage, spec.out):
         metrics = settle_unchanged(stage, cfg, root, spec)
     if metrics is not None:
         log.info("%s: every scene unchanged (%s); settled without a Prefect flow run", stage,

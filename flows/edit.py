@@ -30,7 +30,7 @@ def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path
     ``cast`` when the params' ``generate.compose`` is, else ``generated``. A cast edit casts the
     LiDAR the scenario's yaml names (a real dataset typ read), else ``dataset``'s.
 
-    The copy replaces only an earlier ``typ edit`` copy (its manifest says so); an ``out`` where
+    The copy replaces only an earlier ``typ edit`` copy (typ's record of it matches it); an ``out`` where
     the copy would be, hold or lie inside ``scenario`` is refused (:func:`tasks.edit.edit_target`)."""
     scenario = scenario.resolve()
     target = edit_target(scenario, out)
@@ -56,5 +56,5 @@ def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path
                                    "compose": compose, "edit": dataclasses.asdict(edit)})
     render = save_png(edit_figure(scene.agents[agent], result, grid,
                                   title=f"typ edit: {scenario.name} {timestamp} agent {agent}"),
-                      target.parent / fit_name(f"{scenario.name}_{timestamp}_{agent}_edit.png"))
+                      target.parent / fit_name(f"{scenario.name}_{timestamp}_{agent}_edit.png"), stage=EDIT)
     return target, render

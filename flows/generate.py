@@ -13,7 +13,7 @@ from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
 from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
-from typ.io import hash_files, output_lock, written_by
+from typ.io import hash_files, output_lock
 
 STAGE = "generate"
 
@@ -40,7 +40,7 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
 
     return per_scene_stage(STAGE, cfg, root_path, SceneStage(
         out=out, plan=lambda: stage.plan(block, root_path / block.input, out),
-        owned=lambda path: written_by(path, STAGE), work=stage.run_scenario,
+        work=stage.run_scenario,
         work_kwargs={"cfg": block, "generator": generator, "out": out},
         label=lambda item: f"{item[0].dataset}/{item[0].split}/{item[1].name}", summarize=stage.summarize,
         unchanged=stage.unchanged))
@@ -48,13 +48,14 @@ def generate_flow(params: str = "params.yaml", root: str = ".") -> dict:
 
 def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, params: str,
                       references_per_frame: int | None = None, roadside_units: int | None = None,
-                      compose: str | None = None) -> dict:
+                      compose: str | None = None, sensor: str | None = None) -> dict:
     """``typ generate``: KITTI / nuScenes / Waymo frames -> collaborative OPV2V scenarios under ``out``.
 
     The frames are first written as single-agent OPV2V scenarios under
     ``<out>/single_agent/<fmt>/``, then generated like the simulator's target split into
     ``<out>/<fmt>/frames/<scenario>/`` (real ego + generated references), skipping scenarios
-    whose inputs, params and models are unchanged. It holds the generate stage's lock on ``out``
+    whose inputs, params and models are unchanged (``sensor``: the frames' LiDAR preset, ``--sensor``;
+    unset, the format's own or the one a drive's scans show). It holds the generate stage's lock on ``out``
     (:func:`typ.io.output_lock`) while it writes.
     """
     cfg = load_config(root / params)
@@ -71,7 +72,8 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     generator = load_generator(root, cfg)
     generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
     gset = GenerateSet(dataset=fmt, split="frames", references="vehicles")
-    with output_lock(root, STAGE, out):
-        folders = write_single_agent(read_frames(fmt, input_path), out / "single_agent" / fmt)
+    with output_lock(STAGE, out):
+        folders = write_single_agent(read_frames(fmt, input_path, sensor=sensor), out / "single_agent" / fmt,
+                                     inside=out)
         results = [stage.run_scenario((gset, f), cfg=block, generator=generator, out=out) for f in folders]
     return stage.summarize(results)

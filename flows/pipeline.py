@@ -85,7 +85,7 @@ def run_stage(stage: str, *, params: str = "params.yaml", root: str = ".", task_
     fl = fl.with_options(task_runner=runner(getattr(block, "workers", 1), task_runner, address))
     # one run per output; under torchrun rank 0 holds the lock for the ranks, which write nothing
     system_metrics = {SYSTEM_METRICS_ENV: "true"} if _REGISTERED[stage].kind == "training" else {}
-    with output_lock(root, stage, Path(root) / block.out) if is_main_process() else contextlib.nullcontext(), \
+    with output_lock(stage, Path(root) / block.out) if is_main_process() else contextlib.nullcontext(), \
             api_for_workers() if task_runner == "dask" else contextlib.nullcontext(), \
             scoped_environ(system_metrics, keep_set=True):   # `typ run all`: every stage in one process
         return fl(params=params, root=root)

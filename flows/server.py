@@ -3,13 +3,23 @@ server start`` on loopback, sqlite in ``PREFECT_HOME``, analytics off, basic aut
 project's secret (:func:`api_auth_string`); stopped by killing the process group it was started
 in, on every way out of the code that started it.
 
+A ``kill -9`` of typ runs no code of typ's, so each server typ starts, this one and the temporary
+server Prefect starts by itself in a process without ``PREFECT_API_URL``
+(:func:`bind_temporary_servers`), is started to die with the typ process that started it
+(:func:`start_bound`: Linux's parent-death signal). The Dask workers of ``--runner dask`` need
+nothing of typ's: distributed ends each worker process whose parent is gone.
+
 Prefect is not imported here: it reads ``PREFECT_API_URL`` once, when first imported, so the
 caller starts the server, exports its URL, and only then imports the flows.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
+import importlib.abc
+import importlib.util
 import os
+import queue
 import secrets
 import signal
 import socket
@@ -18,10 +28,11 @@ import subprocess
 import sys
 import threading
 import time
+import types
 import urllib.error
 import urllib.request
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator, TypeVar
 
 from typ.errors import TypError
 from typ.io import TMP_PREFIX
@@ -61,6 +72,138 @@ def signals_held() -> Iterator[None]:
                 handler(s, None)
             else:   # SIG_DFL: end the process as the signal would have
                 signal.raise_signal(s)
+
+
+#: what a bound child runs first (``python -c _BIND PARENT_PID CMD...``): it asks Linux for SIGTERM
+#: when the thread that forked it ends (``PR_SET_PDEATHSIG`` = 1; the request survives exec and
+#: covers ``kill -9`` of the parent), gives up if that parent is already gone, then becomes CMD
+_BIND = """\
+import ctypes, os, signal, sys
+if ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0) != 0:
+    raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG)")
+if os.getppid() != int(sys.argv[1]):
+    sys.exit(1)
+os.execvp(sys.argv[2], sys.argv[2:])
+"""
+
+T = TypeVar("T")
+
+
+class _Spawner:
+    """Runs each ``start()`` in one daemon thread that lives as long as this process does.
+
+    Linux sends the parent-death signal when the *thread* that forked the child ends, not the
+    process: a server forked by a thread that ends before the process (a task runner's, Prefect's
+    events worker, which may be the first to start Prefect's temporary server) would be stopped
+    with that thread. A daemon thread ends only with the process."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._owner: int | None = None   # the process whose thread serves ``_jobs``: a fork has none
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        os.register_at_fork(after_in_child=self._forked)
+
+    def __call__(self, start: Callable[[], T]) -> T:
+        with self._lock:
+            if self._owner != os.getpid():
+                self._jobs = queue.SimpleQueue()
+                threading.Thread(target=self._serve, args=(self._jobs,), name="typ-server-spawner",
+                                 daemon=True).start()
+                self._owner = os.getpid()
+        done: concurrent.futures.Future = concurrent.futures.Future()
+        self._jobs.put((start, done))
+        return done.result()
+
+    def _forked(self) -> None:
+        self._lock = threading.Lock()   # a fork while another thread held it would keep it held
+
+    @staticmethod
+    def _serve(jobs: queue.SimpleQueue) -> None:
+        while True:
+            start, done = jobs.get()
+            try:
+                done.set_result(start())
+            except BaseException as exc:  # handed to the caller, whatever it is
+                done.set_exception(exc)
+
+
+_spawn = _Spawner()
+
+
+def bound_command(cmd: list[str]) -> list[str]:
+    """``cmd`` run so that it gets SIGTERM when this process ends, by ``kill -9`` too (:data:`_BIND`);
+    ``cmd`` itself where Linux's ``prctl`` is missing."""
+    if not sys.platform.startswith("linux"):
+        return list(cmd)
+    return [sys.executable, "-I", "-S", "-c", _BIND, str(os.getpid()), *cmd]
+
+
+def start_bound(args: list[str], **popen_kwargs) -> subprocess.Popen:
+    """``subprocess.Popen(args, **popen_kwargs)`` (its signature: Prefect passes ``args=``) of a child
+    that gets SIGTERM when this process ends, ``kill -9`` included (:func:`bound_command`), forked by a
+    thread that lasts as long as the process (:class:`_Spawner`). The Popen is what it would be for
+    ``args``: same pid once the child runs ``args``, same exit status, same signals."""
+    return _spawn(lambda: subprocess.Popen(bound_command(args), **popen_kwargs))
+
+
+class _BoundSubprocess(types.ModuleType):
+    """The ``subprocess`` module as Prefect's server module sees it once bound: its ``Popen`` starts
+    the child with :func:`start_bound`; everything else is the real module's."""
+
+    def __init__(self):
+        super().__init__("subprocess")
+        self.Popen = start_bound
+
+    def __getattr__(self, name: str):
+        return getattr(subprocess, name)
+
+
+#: Prefect's module whose ``SubprocessASGIServer`` starts the temporary server (uvicorn, a child
+#: process) when a client finds no ``PREFECT_API_URL``; it starts it with its module's ``subprocess.Popen``
+TEMPORARY_SERVER_MODULE = "prefect.server.api.server"
+
+
+def bind_temporary_servers() -> None:
+    """Make the temporary server Prefect starts by itself in this process die with this process.
+
+    Prefect's ``SubprocessASGIServer`` starts uvicorn as a plain child and stops it at exit; a
+    ``kill -9`` left it serving. Its module's ``subprocess`` is replaced by :class:`_BoundSubprocess`,
+    so the command, environment and handling stay Prefect's own. Prefect must not be imported
+    before ``PREFECT_API_URL`` is settled (it reads its settings once), so, when the module is not
+    imported yet, this happens as it is imported (:class:`_AfterImport`)."""
+    module = sys.modules.get(TEMPORARY_SERVER_MODULE)
+    if module is not None:
+        _bind_module(module)
+    elif not any(isinstance(f, _AfterImport) for f in sys.meta_path):
+        sys.meta_path.insert(0, _AfterImport(TEMPORARY_SERVER_MODULE, _bind_module))
+
+
+def _bind_module(module: types.ModuleType) -> None:
+    if not isinstance(module.subprocess, _BoundSubprocess):
+        module.subprocess = _BoundSubprocess()
+
+
+class _AfterImport(importlib.abc.MetaPathFinder):
+    """Calls ``then(module)`` once module ``name`` has been executed by its first import, before the
+    importer gets it; then leaves ``sys.meta_path``."""
+
+    def __init__(self, name: str, then: Callable[[types.ModuleType], None]):
+        self.name, self.then = name, then
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.name:
+            return None
+        sys.meta_path.remove(self)   # once, and not met again by the search below
+        spec = importlib.util.find_spec(fullname)
+        if spec is not None and spec.loader is not None:
+            execute, then = spec.loader.exec_module, self.then
+
+            def exec_module(module):
+                execute(module)
+                then(module)
+
+            spec.loader.exec_module = exec_module
+        return spec
 
 
 #: the file in ``PREFECT_HOME`` that holds the API secret of the servers typ starts
@@ -192,8 +335,9 @@ class LocalServer:
         cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", host, "--port", str(port),
                "--analytics-off", "--ui" if ui else "--no-ui"]
         with open(home / "server.log", "ab") as out:
-            process = subprocess.Popen(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
-                                       stdin=subprocess.DEVNULL, start_new_session=True)
+            # its own session: stop() ends its group; bound: a kill -9 of this process ends it too
+            process = start_bound(cmd, env=child_env, stdout=out, stderr=subprocess.STDOUT,
+                                  stdin=subprocess.DEVNULL, start_new_session=True)
         return cls(process, host, port, home, auth)
 
     def wait_healthy(self, timeout: float) -> None:

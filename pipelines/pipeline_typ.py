@@ -43,6 +43,7 @@ from models.schedules import SCHEDULES, betas
 from models.vqvae import build_from_config as build_encoder
 from typ import distributed
 from typ.artifacts import load_module, save_module
+from typ.config import MAX_ADAPTER_SCALE, MAX_NOISE_STD, MAX_TIMESTEPS
 from typ.errors import TypError
 from typ.io import read_json_or_none, write_json
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
@@ -51,12 +52,6 @@ PIPELINE_JSON = "pipeline.json"
 COMPONENTS = ("x_vqvae", "box_encoder", "unet", "adapter")
 #: the parts a generator cannot do without (the adapter is absent for stage 1 alone)
 REQUIRED = ("x_vqvae", "box_encoder", "unet")
-#: diffusion steps a generator trains or samples with (the paper's T: 1000)
-MAX_TIMESTEPS = 10_000
-#: adapter_scale beyond this drowns the UNet (reports/generation_ablation.md tries a few units)
-MAX_ADAPTER_SCALE = 1000.0
-#: logit noise of the post-processing (params: stage1.postprocess.noise_std, about 1)
-MAX_NOISE_STD = 100.0
 #: range bands of a PointStats (point_statistics writes 5)
 MAX_BANDS = 64
 

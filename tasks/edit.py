@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -211,27 +212,40 @@ def edit_target(scenario: Path, out: Path) -> Path:
     return target
 
 
+#: the most entries and folder levels a scenario copy takes: a link to ``/`` or a deep tree must end in an error
+MAX_COPY_ENTRIES = 200_000
+MAX_COPY_DEPTH = 32
+
+
 def copy_scenario(source: Path, dest: Path) -> None:
-    """Copy the scenario folder ``source`` to ``dest``, leaving out typ's own files (``_*``) and
-    hidden ones. Symlinks are copied as links and never followed, so a link loop copies as one
-    link: a relative link that stays inside ``source`` keeps its target (it names the copy's
-    file), any other names what it named (an absolute path). Other special files are skipped."""
-    for folder, dirs, files in os.walk(source):  # links to folders come in dirs and are not walked
-        here = Path(folder)
-        into = dest / here.relative_to(source)
-        into.mkdir(parents=True, exist_ok=True)
-        dirs[:] = [d for d in dirs if not d.startswith(("_", "."))]
-        for name in (n for n in dirs + files if not n.startswith(("_", "."))):
-            path = here / name
-            if path.is_symlink():
-                os.symlink(_link_target(path, source), into / name)
-            elif path.is_file():
-                shutil.copy2(path, into / name)
+    """Copy the scenario folder ``source`` to ``dest`` as real files, leaving out typ's own files
+    (``_*``) and hidden ones. A link is followed and what it names is copied, so the copy never
+    writes through to a dataset a scenario was assembled from by links; a link back to a folder
+    being copied (a loop) is copied no further, a dangling link and other special files are
+    skipped. More than :data:`MAX_COPY_ENTRIES` entries or :data:`MAX_COPY_DEPTH` levels raise
+    TypError naming ``source``."""
+    count = 0
 
+    def copy_folder(src: Path, dst: Path, ancestors: frozenset, depth: int) -> None:
+        nonlocal count
+        if depth > MAX_COPY_DEPTH:
+            raise TypError(source, "scenario", f"a scenario folder at most {MAX_COPY_DEPTH} levels deep", str(src))
+        dst.mkdir()
+        with os.scandir(src) as entries:
+            names = sorted(e.name for e in entries if not e.name.startswith(("_", ".")))
+        for name in names:
+            count += 1
+            if count > MAX_COPY_ENTRIES:
+                raise TypError(source, "scenario", f"a scenario of at most {MAX_COPY_ENTRIES} files and folders "
+                               "(its links included)", f"more, at {src / name}")
+            try:
+                info = os.stat(src / name)  # through a link: what it names
+            except OSError:
+                continue
+            if stat.S_ISDIR(info.st_mode) and (info.st_dev, info.st_ino) not in ancestors:
+                copy_folder(src / name, dst / name, ancestors | {(info.st_dev, info.st_ino)}, depth + 1)
+            elif stat.S_ISREG(info.st_mode):
+                shutil.copy2(src / name, dst / name)
 
-def _link_target(link: Path, top: Path) -> str:
-    target = os.readlink(link)
-    named = os.path.normpath(os.path.join(link.parent, target))
-    if not os.path.isabs(target) and (named == str(top) or named.startswith(str(top) + os.sep)):
-        return target
-    return named
+    top = os.stat(source)
+    copy_folder(Path(source), Path(dest), frozenset({(top.st_dev, top.st_ino)}), 0)

@@ -212,8 +212,45 @@ def run(cfg, root: Path, *, run=None) -> StageResult:
     metrics["adaptation"] = adaptation
     fusion_metrics, fusion_paths, fusion_lines = fusion_section(cfg, root)
     metrics["fusion"] = fusion_metrics
-    summary = "\n".join(["# typ evaluate", "", *lines, "", *fusion_lines])
-    return StageResult(metrics, [*paths, *fusion_paths], summary)
+    novel_metrics, novel_paths, novel_lines = novel_view_section(cfg, root)
+    if novel_metrics:
+        metrics["novel_view"] = novel_metrics
+    summary = "\n".join(["# typ evaluate", "", *lines, "", *fusion_lines, *novel_lines])
+    return StageResult(metrics, [*paths, *fusion_paths, *novel_paths], summary)
+
+
+#: where the real-scan section writes (inside the gallery, one of the stage's outputs)
+NOVEL_VIEW = GALLERY / "novel_view"
+
+
+def novel_view_section(cfg, root: Path) -> tuple[dict, list[Path], list[str]]:
+    """Generated views scored against real scans of the drives params name (``evaluate.novel_view``,
+    :mod:`tasks.novel_view`): per drive, the headline figures of each method and the report under
+    ``reports/gallery/novel_view/<drive>/``. No drive named: nothing (``make run`` reads no real data)."""
+    from tasks import novel_view, novel_view_report
+    from typ.voxel import Grid
+
+    block = cfg.evaluate.novel_view
+    if not block.sequences:
+        return {}, [], []
+    generator, model = novel_view.trained_generator(root, cfg, cfg.evaluate.selftrain)
+    g = cfg.voxelize.grid
+    grid = Grid(g.x_range, g.y_range, g.z_range, g.shape)
+    metrics, paths, lines = {}, [], ["## Real scans at other poses (LiDAR4D's F-score, all pairs)", ""]
+    for drive in block.sequences:
+        data_root = root / drive.root
+        result = novel_view.run_benchmark(data_root, drive.sequence, sensor=drive.sensor or None,
+                                          grid=grid, generator=generator, model=model,
+                                          cast=cfg.generate.cast, frames=drive.frames, max_pairs=block.max_pairs,
+                                          n_boot=cfg.evaluate.n_boot, seed=cfg.evaluate.seed, log=LOG.info)
+        name = f"{data_root.resolve().name}_{drive.sequence}"
+        paths += novel_view_report.write_report(result, root / NOVEL_VIEW / name, pictures=block.pictures)
+        doc = novel_view_report.to_json(result)
+        metrics[name] = {k: doc[k] for k in ("pairs", "methods", "differences", "ratios_to_map_oracle", "models",
+                                             "pair_rule")}
+        lines += [f"- {name}: " + ", ".join(f"{m} {cell(result.summary['methods'][m]['all']['fscore'])}"
+                                            for m in result.methods)]
+    return metrics, paths, lines
 
 
 def missing_truth(split_root: Path) -> str | None:

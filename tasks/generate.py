@@ -309,7 +309,7 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
     clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose,
                                   cast=cfg.cast) if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
-    with atomic_path(target, stage=STAGE) as tmp:
+    with atomic_path(target, stage=STAGE, inside=out) as tmp:
         tmp.mkdir(parents=True)
         for scene, refs in frames:
             views = {scene.ego.agent_id: scene.ego}  # the real ego; cavs: the real CAVs are replaced

@@ -12,7 +12,7 @@ Figures (all pooled over the voxels / boxes / scans of the set, not averaged per
   at that planar distance from the reference sensor; ``iou_seen`` / ``iou_unseen`` over the
   cells the ego's cloud did / did not cover (:func:`typ.resim.coverage_mask`);
 - ``iou_above_ground``: over voxels more than 0.3 m above the true view's local ground
-  (:func:`typ.metrics.truth.above_ground`), where walls, vehicles and vegetation are;
+  (:func:`typ.metrics.generation.above_ground`), where walls, vehicles and vegetation are;
 - ``object_hit_rate``: of the labelled vehicles within 50 m of the reference sensor, the share
   with at least 10 of the method's points inside their box (what a detector needs);
 - ``chamfer_m``: mean over views of the symmetric Chamfer distance of occupied voxel centres;
@@ -110,7 +110,7 @@ def _band(lo: float, hi: float) -> Callable[[Pair], np.ndarray]:
 #: where an IoU is counted: name -> a pair's (C, H, W) bool selection of voxels (None: all of them).
 #: ``seen`` / ``unseen``: the BEV cells the ego's cloud did / did not cover
 #: (:func:`typ.resim.coverage_mask`); ``above_ground``: voxels more than 0.3 m above the true
-#: view's local ground (:func:`typ.metrics.truth.above_ground`), where walls, vehicles and vegetation are
+#: view's local ground (:func:`typ.metrics.generation.above_ground`), where walls, vehicles and vegetation are
 MASKS: dict[str, Callable[[Pair], np.ndarray | None]] = {
     "all": lambda p: None,
     **{band_label(lo, hi): _band(lo, hi) for lo, hi in BANDS},

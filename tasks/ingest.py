@@ -4,7 +4,9 @@
 A dataset is listed as :class:`DatasetScenario` s before anything is read: a KITTI frame stands
 alone; a nuScenes scene (the info records sharing a ``scene_token``, in time order) is one
 scenario, a keyframe without one stands alone; a Waymo segment (one tfrecord) is one scenario,
-read and written one frame at a time. Each frame is moved into its LiDAR's sensor frame when
+read and written one frame at a time; a drive in the KITTI odometry layout (``kitti-odometry``) is
+one scenario with one frame per scan and the scans' poses (a range of its frames, with
+``frame_ranges``). Each frame is moved into its LiDAR's sensor frame when
 the dataset reports points in a vehicle frame (Waymo: origin on the ground, so the grid's z
 range, which is relative to the sensor, would miss most points) and written with
 :func:`typ.formats.opv2v.write_scene`, the ego's yaml naming its LiDAR (``sensor: kitti``) so
@@ -30,12 +32,13 @@ import numpy as np
 from typ.config import SourceConfig
 from typ.errors import TypError
 from typ.formats.kitti import MAX_TEXT_BYTES, read_kitti_frame
+from typ.formats.kitti_odometry import estimate_sensor, list_sequences, read_sequence
 from typ.formats.nuscenes import read_info, record_frame
-from typ.formats.opv2v import write_scene
+from typ.formats.opv2v import time_order, write_scene
 from typ.formats.waymo import iter_waymo_frames
-from typ.inputs import read_text
+from typ.inputs import inside, read_text
 from typ.io import atomic_path, code_digest, hash_files, hash_obj, write_manifest
-from typ.scene import Scene
+from typ.scene import AgentView, Scene
 from typ.sensors import resolve
 import typ.formats
 import typ.scene
@@ -48,6 +51,8 @@ SPLIT_NAMES = {"train": ("train", "training"), "val": ("val", "validation"), "te
                "pretrain": ("pretrain",)}
 #: a dataset without splits of its own: the fraction of its scenarios each typ split takes
 DEFAULT_FRACTIONS = {"train": 0.7, "val": 0.1, "test": 0.1, "pretrain": 0.1}
+#: drives in the KITTI odometry / SemanticKITTI layout (typ.formats.kitti_odometry)
+ODOMETRY = "kitti-odometry"
 #: what decides how a dataset's frames are read and written: a change redoes every scenario
 _CODE = code_digest(typ.formats, typ.scene, typ.sensors.presets, sys.modules[__name__])
 
@@ -62,8 +67,15 @@ class DatasetScenario:
     #: the files it is read from, in reading order (the scenario's key hashes them)
     files: tuple[Path, ...]
     #: kitti: ((root, split folder, frame id),); nuscenes: ((record, categories, bin, info), ...) in
-    #: time order; waymo: ()
+    #: time order; waymo: (); kitti-odometry: ((Sequence, first scan, stop),)
     parts: tuple = field(default=(), compare=False, hash=False)
+    #: the preset of its LiDAR (typ.sensors) the written yaml names; empty: the format's own
+    sensor: str = ""
+
+    @property
+    def lidar(self) -> str:
+        """The LiDAR preset its frames are scans of."""
+        return self.sensor or READERS[self.fmt].preset
 
     def __iter__(self) -> Iterator[Scene]:
         reader = READERS[self.fmt]
@@ -77,14 +89,22 @@ class DatasetScenario:
         """A digest of everything the scenario's files hold and how they are read."""
         records = [part[0] for part in self.parts] if READERS[self.fmt].keyed_records else []
         return hash_files(self.files, extra=hash_obj({"name": self.name, "format": self.fmt, "records": records,
-                                                      "code": _CODE}))
+                                                      "code": _CODE, "sensor": self.lidar,
+                                                      "frames": [list(p[1:]) for p in self.parts]
+                                                      if self.fmt == ODOMETRY else []}))
 
 
-def list_dataset(fmt: str, root: str | Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+def list_dataset(fmt: str, root: str | Path, *, sensor: str | None = None
+                 ) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     """(the scenarios of the ``fmt`` dataset at ``root``, sorted by name; the dataset's own splits,
     name -> scenario names). Raises TypError for an unknown format, a root that is no folder or
     holds no frame, a split file naming a frame the root lacks, a nuScenes record whose point
-    cloud is missing, and two scenarios of one name.
+    cloud is missing, a file or folder that leads out of the root (an absolute or climbing
+    ``lidar_path``, a link elsewhere: :func:`typ.inputs.inside`, checked before it is read), and two
+    scenarios of one name.
+
+    sensor: the preset (:data:`typ.sensors.SENSORS`) its scans are of; unset, the format's own
+    (``kitti-odometry``: estimated from each drive's first scan, :func:`typ.formats.kitti_odometry.estimate_sensor`).
 
     kitti: ``training/`` and ``testing/`` (velodyne or velodyne_reduced, label_2, calib), splits
     ``training``, ``testing`` and each ``ImageSets/<name>.txt`` (frame ids; ``test`` in testing/).
@@ -92,16 +112,21 @@ def list_dataset(fmt: str, root: str | Path) -> tuple[list[DatasetScenario], dic
     relative to the root, or in ``samples/LIDAR_TOP/`` or the root itself); a file named
     ``*_train``, ``*_val`` or ``*_test`` is that split.
     waymo: ``*.tfrecord`` segments in the root (no split) and in ``training/``, ``validation/``,
-    ``testing/``.
+    ``testing/``. kitti-odometry: ``sequences/<seq>/`` with ``velodyne/*.bin``, ``calib.txt`` and
+    ``poses.txt``, each sequence checked whole (:func:`typ.formats.kitti_odometry.read_sequence`).
     """
     root = Path(root)
     if fmt not in FORMATS:
         raise TypError(root, "format", f"one of {list(FORMATS)}", fmt)
     if not root.is_dir():
         raise TypError(root, "root", f"a {fmt} dataset folder", "not a folder")
+    if sensor is not None:
+        resolve(sensor, where="typ", field="--sensor / sensor")
     scenarios, splits = READERS[fmt].find(root)
     if not scenarios:
         raise TypError(root, "root", f"{fmt} frames ({READERS[fmt].layout})", "none found")
+    if sensor is not None or READERS[fmt].estimate is not None:
+        scenarios = [dataclasses.replace(s, sensor=sensor or READERS[fmt].estimate(s)) for s in scenarios]
     by_name: dict[str, DatasetScenario] = {}
     for scenario in scenarios:
         if scenario.name in by_name:
@@ -124,9 +149,11 @@ def _kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
                          if p.exists())
             labelled = (base / "label_2").is_dir()
             files = [cloud] + ([base / "calib" / f"{frame}.txt", base / "label_2" / f"{frame}.txt"] if labelled else [])
+            # the scenario's key reads these files: each must lie inside the root before it is hashed
+            files = [inside(p.relative_to(root), root) for p in files]
             scenarios.append(DatasetScenario("kitti", names[folder][frame], tuple(p for p in files if p.is_file()),
                                              ((root, folder, frame),)))
-    for split_file in sorted((root / "ImageSets").glob("*.txt")):
+    for split_file in sorted(inside(p.relative_to(root), root) for p in (root / "ImageSets").glob("*.txt")):
         folder = "testing" if split_file.stem == "test" else "training"
         lines = read_text(split_file, "KITTI split file", max_bytes=MAX_TEXT_BYTES, encoding="ascii").splitlines()
         members = []
@@ -144,7 +171,7 @@ def _kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
 
 def _nuscenes(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios, splits = [], {}
-    for info_path in sorted(p for p in root.glob("*.json") if "info" in p.name):
+    for info_path in sorted(inside(p.name, root) for p in root.glob("*.json") if "info" in p.name):
         records, categories = read_info(info_path)
         scenes: dict[str, list] = {}
         for k, record in enumerate(records):
@@ -166,10 +193,14 @@ def _nuscenes(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
 
 def _record_cloud(root: Path, info_path: Path, k: int, record: dict) -> Path:
     """The point cloud of info record ``k``: its lidar_path under the root, else that file name in
-    ``samples/LIDAR_TOP/`` or the root (mmdet3d v1.x keeps the name only)."""
+    ``samples/LIDAR_TOP/`` or the root (mmdet3d v1.x keeps the name only). Each of them must lead to a
+    file inside the root (:func:`typ.inputs.inside`): an absolute or climbing lidar_path, or a link out
+    of the root, is refused, never read."""
     lidar_path = record["lidar_points"]["lidar_path"]
     name = Path(lidar_path).name
-    candidates = (root / lidar_path, root / "samples" / "LIDAR_TOP" / name, root / name)
+    field = f"data_list[{k}].lidar_points.lidar_path"
+    candidates = [inside(p, root, where=info_path, field=field)
+                  for p in (lidar_path, Path("samples") / "LIDAR_TOP" / name, name)]
     found = next((p for p in candidates if p.is_file()), None)
     if found is None:
         raise TypError(info_path, f"data_list[{k}].lidar_points.lidar_path",
@@ -190,10 +221,32 @@ def _waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios, splits = [], {}
     for folder in ("", "training", "validation", "testing"):
         for path in sorted((root / folder).glob("*.tfrecord")):
-            scenarios.append(_file_scenario("waymo", path))
+            scenarios.append(_file_scenario("waymo", inside(path.relative_to(root), root)))
             if folder:
                 splits.setdefault(folder, []).append(scenarios[-1].name)
     return scenarios, splits
+
+
+def _kitti_odometry(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+    scenarios = []
+    for name in list_sequences(root):
+        sequence = read_sequence(root, name)
+        scenarios.append(DatasetScenario(ODOMETRY, _safe(f"{root.resolve().name}_{name}"),
+                                         (*sequence.meta_files, *sequence.scans), ((sequence, 0, len(sequence)),)))
+    return scenarios, {}
+
+
+def _kitti_odometry_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+    (sequence, first, stop), = scenario.parts
+    for k in range(first, stop):
+        view = AgentView(agent_id="ego", points=sequence.points(k), pose=sequence.poses[k].copy(),
+                         where=str(sequence.scans[k]))
+        yield Scene(scenario=scenario.name, timestamp=f"{k:06d}", agents={"ego": view}, dataset=ODOMETRY)
+
+
+def _estimate_odometry_sensor(scenario: DatasetScenario) -> str:
+    (sequence, first, _), = scenario.parts
+    return estimate_sensor(sequence.points(first), where=sequence.scans[first])[0]
 
 
 def _file_scenario(fmt: str, path: Path) -> DatasetScenario:
@@ -228,7 +281,9 @@ class Reader:
     frame, origin on the ground (lifted by the preset's mount height); ``own_timestamps``: the
     dataset's stamps are in file order and kept; ``keyed_records``: the scenario's key hashes its
     parts' records too (nuScenes info entries); ``one_file``: ``typ generate --input`` may name
-    one file of it. Its LiDAR is the preset of the same name (:mod:`typ.sensors.presets`).
+    one file of it. Its LiDAR is the preset ``sensor`` names (:mod:`typ.sensors.presets`; empty:
+    the preset of the format's name), or, with ``estimate``, the one ``estimate(scenario)`` finds
+    in its scans (a layout any car's drive is written in); ``--sensor`` names another.
 
     A new format is its reader (``typ/formats/<name>.py``) and an entry in :data:`READERS`, plus
     its name in the config's ``SINGLE_AGENT_FORMATS``."""
@@ -240,6 +295,12 @@ class Reader:
     own_timestamps: bool = False
     keyed_records: bool = False
     one_file: bool = False
+    sensor: str = ""
+    estimate: Callable[[DatasetScenario], str] | None = None
+
+    @property
+    def preset(self) -> str:
+        return self.sensor or next(name for name, reader in READERS.items() if reader is self)
 
 
 #: every single-agent format, by name (``simulate.sources.<domain>.format``, ``typ generate --format``)
@@ -249,11 +310,16 @@ READERS: dict[str, Reader] = {
                        keyed_records=True),
     "waymo": Reader(_waymo, _waymo_frames, "*.tfrecord segments in the root or in training/, validation/, testing/",
                     vehicle_frame=True, own_timestamps=True, one_file=True),
+    # KITTI odometry's own drives are KITTI's HDL-64E; another car's drive in the layout is told
+    # by its scans (or --sensor)
+    ODOMETRY: Reader(_kitti_odometry, _kitti_odometry_frames,
+                     "sequences/<seq>/ with velodyne/*.bin, calib.txt (Tr) and poses.txt", sensor="kitti",
+                     estimate=_estimate_odometry_sensor),
 }
 FORMATS = tuple(READERS)
 #: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
 #: voxel grid's z is relative to it): its preset's, with the source (typ.sensors.presets)
-MOUNT_HEIGHT = {fmt: resolve(fmt).mount_height for fmt in FORMATS}
+MOUNT_HEIGHT = {fmt: resolve(reader.preset).mount_height for fmt, reader in READERS.items()}
 #: height of the LiDAR above the frame its points come in: 0 where that is the LiDAR's own
 SENSOR_HEIGHT = {fmt: MOUNT_HEIGHT[fmt] if READERS[fmt].vehicle_frame else 0.0 for fmt in FORMATS}
 
@@ -317,7 +383,28 @@ def name_hash(name: str) -> float:
 
 def source_splits(block: SourceConfig, data_root: Path, *, where: str, field: str) -> dict[str, SplitShare]:
     """typ split -> its share of the single-agent dataset ``block`` names (rooted at ``data_root``)."""
-    return assign_splits(block.format, list_dataset(block.format, data_root), block.splits, where=where, field=field)
+    listing = list_dataset(block.format, data_root, sensor=block.sensor or None)
+    if block.frame_ranges:
+        return frame_range_splits(listing[0], block.frame_ranges, where=where, field=field)
+    return assign_splits(block.format, listing, block.splits, where=where, field=field)
+
+
+def frame_range_splits(drives: list[DatasetScenario], ranges: dict, *, where: str, field: str) -> dict[str, SplitShare]:
+    """typ split -> scans ``[first, stop)`` of every drive (``kitti-odometry`` scenarios), each range
+    a scenario named ``<drive>_f<first>-<stop>``; a range past a drive's end raises TypError."""
+    shares = {}
+    for split, (first, stop) in ranges.items():
+        taken = []
+        for drive in drives:
+            (sequence, _, end), = drive.parts
+            if stop > end:
+                raise TypError(where, f"{field}.frame_ranges.{split}", f"scans within the {end} of {drive.name}",
+                               [first, stop])
+            taken.append(dataclasses.replace(
+                drive, name=_safe(f"{drive.name}_f{first}-{stop}"), parts=((sequence, first, stop),),
+                files=(*sequence.meta_files, *sequence.scans[first:stop])))
+        shares[split] = SplitShare(taken, f"{ODOMETRY}: scans [{first}, {stop}) of each drive (split by frame range)")
+    return shares
 
 
 @dataclass(frozen=True)
@@ -353,7 +440,7 @@ class IngestJob:
 
     def write(self, tmp: Path) -> dict:
         """Write the scenario's frames into ``tmp``; its counts."""
-        return write_frames(self.scenario, tmp, sensor=self.scenario.fmt)
+        return write_frames(self.scenario, tmp, sensor=self.scenario.lidar)
 
 
 def frame_counts(frames: Iterable[Scene]) -> dict:
@@ -383,17 +470,18 @@ def _check_ids(scene: Scene) -> None:
                        sorted({i for i in ids if ids.count(i) > 1})[:5])
 
 
-def read_frames(fmt: str, path: str | Path) -> list[DatasetScenario]:
+def read_frames(fmt: str, path: str | Path, *, sensor: str | None = None) -> list[DatasetScenario]:
     """``typ generate --format``'s scenarios: every scenario of the dataset at ``path``
-    (:func:`list_dataset`; for waymo, ``path`` may also be one tfrecord)."""
+    (:func:`list_dataset`; for waymo, ``path`` may also be one tfrecord); ``sensor``: ``--sensor``."""
     path = Path(path)
     if fmt not in FORMATS:
         raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", fmt)
     if not path.exists():
         raise TypError(path, "--input", f"an existing {fmt} file or folder", "not found")
     if READERS[fmt].one_file and path.is_file():
-        return [_file_scenario(fmt, path)]
-    return list_dataset(fmt, path)[0]
+        scenario = _file_scenario(fmt, path)
+        return [dataclasses.replace(scenario, sensor=sensor) if sensor else scenario]
+    return list_dataset(fmt, path, sensor=sensor)[0]
 
 
 def to_sensor_frame(scene: Scene, height: float) -> Scene:
@@ -411,15 +499,16 @@ def to_sensor_frame(scene: Scene, height: float) -> Scene:
     return dataclasses.replace(scene, agents={ego.agent_id: view})
 
 
-def write_single_agent(scenarios: Iterable[DatasetScenario], root: Path) -> list[Path]:
+def write_single_agent(scenarios: Iterable[DatasetScenario], root: Path, *, inside: Path | None = None) -> list[Path]:
     """Write every scenario as ``<root>/<scenario>/<agent>/<timestamp>.pcd|.yaml`` (:func:`write_frames`),
-    each whole or not at all; returns the folders."""
+    each whole or not at all; returns the folders. ``inside``: the output folder ``root`` lies in
+    (``root`` itself by default), which no write leaves through a link (:func:`typ.io.atomic_path`)."""
     folders = []
     for scenario in scenarios:
         target = root / scenario.name
-        with atomic_path(target, stage=STAGE) as tmp:
+        with atomic_path(target, stage=STAGE, inside=inside or root) as tmp:
             tmp.mkdir(parents=True)
-            counts = write_frames(scenario, tmp, sensor=scenario.fmt)
+            counts = write_frames(scenario, tmp, sensor=scenario.lidar)
             write_manifest(tmp, STAGE, {"frames": counts["frames"]})
         folders.append(target)
     return folders
@@ -449,7 +538,7 @@ def _number_in_time_order(folder: Path, stamps: list[str]) -> None:
     if len(set(stamps)) != len(stamps):
         dup = next(t for t in stamps if stamps.count(t) > 1)
         raise TypError(folder.name, "timestamp", "one frame per timestamp in a scenario", dup)
-    ranked = sorted(stamps, key=lambda t: (int(t), t) if t.isdigit() else (float("inf"), t))
+    ranked = sorted(stamps, key=time_order)
     renames = {old: f"{i:06d}" for i, old in enumerate(ranked) if old != f"{i:06d}"}
     agents = [d for d in folder.iterdir() if d.is_dir()]
     for stage in ("tmp", "final"):   # through temporary names: a new name may be another frame's old one

@@ -15,9 +15,8 @@ from typing import Callable
 @dataclass(frozen=True)
 class SceneStage:
     """``plan()`` gives the items to do and the stale outputs: what lies where the stage's outputs
-    go but is no output of the current plan; ``owned(path)`` says whether a stale output is one
-    the stage wrote (its manifest, its file format's mark): only those are deleted, the others
-    are left alone and counted; ``work(item, **work_kwargs)`` makes one item's output and returns
+    go but is no output of the current plan: only those the stage wrote (its record,
+    :func:`typ.io.written_by`) are deleted, the others are left alone and counted; ``work(item, **work_kwargs)`` makes one item's output and returns
     a dict with ``scenario`` and ``skipped`` (None or the reason); ``unchanged(item,
     **work_kwargs)`` is the cheap check ``work`` starts with (the skipped result of an item whose
     stored output is current, else None); ``summarize(results)`` gives the stage's metrics;
@@ -25,7 +24,6 @@ class SceneStage:
 
     out: Path
     plan: Callable[[], tuple[list, list[Path]]]
-    owned: Callable[[Path], bool]
     work: Callable[..., dict]
     label: Callable[[object], str]
     summarize: Callable[[list[dict]], dict]

@@ -44,6 +44,9 @@ from typ.scene import AgentView, Scene
 from typ.sim.sensor import DOMAINS, SensorSpec, domain_spec
 from typ.voxel import Grid, points_to_reference, voxel_centers, voxelize
 
+#: what typ's records name as the writer of a ``typ show`` picture (:func:`typ.io.written_by`)
+SHOW = "show"
+
 log = logging.getLogger("typ.show")
 #: what a generated set's references are (GenerateSet.references)
 REFERENCE_KINDS = typing.get_args(typing.get_type_hints(GenerateSet)["references"])
@@ -113,6 +116,9 @@ def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) ->
     def png(what: str) -> Path:  # a long scenario name is shortened to fit NAME_MAX, not refused
         return out / fit_name(f"{folder.name}_{timestamp}_{what}.png")
 
+    def save(fig, path: Path) -> Path:  # --out is the user's folder: replace only what `typ show` wrote
+        return viz.save_png(fig, path, stage=SHOW)
+
     sim_folder = simulated_counterpart(folder, opts)
     job = scenario_job(sim_folder) if sim_folder is not None else None
     spec = sensor_of(folder, opts, job)
@@ -121,22 +127,22 @@ def show_scenario(folder: Path, timestamp: str, out: Path, opts: ShowOptions) ->
     for agent_id, view in scene.agents.items():
         panel = agent_panel(scene, agent_id, opts)
         panels.append(panel)
-        written.append(viz.save_png(viz.panels_figure([panel], colorbar_z=_colorbar(view, opts)),
+        written.append(save(viz.panels_figure([panel], colorbar_z=_colorbar(view, opts)),
                                     png(agent_id)))
         if spec is not None:
-            written.append(viz.save_png(viz.range_figure(view.points, spec, title=f"{folder.name} {timestamp} "
+            written.append(save(viz.range_figure(view.points, spec, title=f"{folder.name} {timestamp} "
                                                          f"agent {agent_id}"), png(f"{agent_id}_range")))
     title = f"{folder.name}  {timestamp}  ({len(scene.agents)} agents, first = ego)"
     colorbar = None if opts.color == "class" and all(v.semantics is not None for v in scene.agents.values()) \
         else opts.grid.z_range
-    written.append(viz.save_png(viz.panels_figure(panels, title=title, colorbar_z=colorbar),
+    written.append(save(viz.panels_figure(panels, title=title, colorbar_z=colorbar),
                                 png("agents")))
     for agent_id in generated:
         if agent_id not in scene.agents:
             continue
         sample = generated_sample(scene, agent_id, references=references,
                                   sim_folder=sim_folder, job=job, spec=spec, opts=opts)
-        written.append(viz.save_png(viz.sample_figure(sample, opts.grid, window=opts.window),
+        written.append(save(viz.sample_figure(sample, opts.grid, window=opts.window),
                                     png(f"{agent_id}_sample")))
     return written
 

@@ -37,8 +37,7 @@ from tasks.scene_stage import SceneStage
 from typ.config import Config, SimulateConfig, SourceConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
-from typ.io import (SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_manifest,
-                    written_by)
+from typ.io import SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_manifest
 import typ.formats.opv2v
 import typ.formats.pcd
 import typ.geometry
@@ -241,7 +240,8 @@ def stale_scenarios(jobs: list, out: Path) -> list[Path]:
     """What lies where scenario folders go (``<out>/<domain>/<split>/``) that no job produces (a
     split shrank, or someone else's files): the stage deletes those it wrote."""
     wanted = {job.folder(out) for job in jobs}
-    return sorted(p for p in out.glob("*/*/*") if p not in wanted and not p.name.startswith("."))
+    return sorted(p for p in out.glob("*/*/*")   # hidden names: temporaries, typ's records (<domain>/.typ/)
+                  if p not in wanted and not any(part.startswith(".") for part in p.relative_to(out).parts))
 
 
 def _job_state(job: ScenarioJob | ImportJob | IngestJob, out: Path) -> tuple[Path, str, dict, dict | None]:
@@ -265,7 +265,7 @@ def run_job(job: ScenarioJob | ImportJob | IngestJob, out: Path) -> dict:
     if done is not None:
         return done
     t0 = time.perf_counter()
-    with atomic_path(folder, stage=STAGE) as tmp:
+    with atomic_path(folder, stage=STAGE, inside=out) as tmp:
         tmp.mkdir(parents=True)
         counts = job.write(tmp)
         write_manifest(tmp, STAGE, {"key": key, "job": job.describe(), "counts": counts, "typ_version": __version__})
@@ -298,7 +298,7 @@ def scene_stage(cfg: Config, root: Path) -> SceneStage:
     jobs = plan_jobs(cfg.simulate, root=root, out=out, where=cfg.source)
     rules = split_rules(jobs)
     return SceneStage(out=out, plan=lambda: (jobs, stale_scenarios(jobs, out)),
-                      owned=lambda path: written_by(path, STAGE), work=run_job, work_kwargs={"out": out},
+                      work=run_job, work_kwargs={"out": out},
                       label=lambda job: job.name,
                       summarize=lambda results: {**summarize(results), **({"splits": rules} if rules else {})},
                       unchanged=unchanged)

@@ -32,9 +32,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from typ import distributed
 from typ.errors import TypError
-from typ.io import is_temporary, write_bytes
+from typ.io import is_temporary, remove_written, write_bytes
 
 CKPT = re.compile(r"^step_(\d{8})\.pt$")
+#: what typ's records name as the writer of a checkpoint (:func:`typ.io.written_by`)
+CHECKPOINT = "checkpoint"
 
 
 class TrainingDiverged(RuntimeError):
@@ -63,9 +65,9 @@ def checkpoints(directory: Path) -> list[tuple[int, Path]]:
 
 def save_checkpoint(directory: Path, step: int, state: dict, *, keep: int = 2) -> Path:
     path = directory / f"step_{step:08d}.pt"
-    save_torch(path, {"step": step, **state})
+    save_torch(path, {"step": step, **state}, stage=CHECKPOINT)
     for _, old in checkpoints(directory)[:-keep]:
-        old.unlink(missing_ok=True)
+        remove_written(old, CHECKPOINT)
     return path
 
 
@@ -77,38 +79,45 @@ def seed_dir(parent: Path, seed: int) -> Path:
 
 def run_checkpoint_dir(root: Path, key: str) -> Path:
     """``root/key``: where this run's checkpoints go. Checkpoints of other keys (another config or
-    other data) are removed, so a resume only ever continues the same run: the folders beside it
-    that hold nothing but checkpoints and temporaries, as typ writes them; anything else is kept."""
+    other data) are removed, so a resume only ever continues the same run: the checkpoints typ
+    wrote in the folders beside it and its temporaries there, then each folder that leaves empty;
+    anything else is kept."""
     for old in root.glob("*"):
-        if old.name != key and _checkpoints_only(old):
-            shutil.rmtree(old, ignore_errors=True)
+        if old.name != key and not old.name.startswith("."):   # .typ/: typ's records of the checkpoints
+            _remove_checkpoints(old)
     return root / key
 
 
 def drop_checkpoints(folder: Path, *, up_to: Path) -> None:
-    """Remove a finished run's checkpoint ``folder`` (:func:`run_checkpoint_dir`) once its model is
-    saved, then the folders above it up to ``up_to`` that it leaves empty. Only a folder holding
-    nothing but checkpoints and temporaries goes; anything else is kept."""
-    if _checkpoints_only(folder):
-        shutil.rmtree(folder, ignore_errors=True)
+    """Remove a finished run's checkpoints in ``folder`` (:func:`run_checkpoint_dir`) once its model is
+    saved, then the folders up to ``up_to`` that it leaves empty; anything else is kept."""
+    _remove_checkpoints(folder)
     parent = folder.parent
     while parent != up_to and up_to in parent.parents and parent.is_dir() and not any(parent.iterdir()):
         parent.rmdir()
         parent = parent.parent
 
 
-def _checkpoints_only(folder: Path) -> bool:
-    """A folder (not a link) of checkpoint files (:data:`CKPT`) and typ's temporaries only."""
+def _remove_checkpoints(folder: Path) -> None:
+    """Delete the checkpoints typ wrote in ``folder`` (a folder, not a link; their records match them,
+    :func:`typ.io.remove_written`) and typ's temporaries there, then ``folder`` if that empties it."""
     if folder.is_symlink() or not folder.is_dir():
-        return False
-    return all(p.is_file() and not p.is_symlink() and (CKPT.match(p.name) or is_temporary(p)) for p in folder.iterdir())
+        return
+    for p in folder.iterdir():
+        if CKPT.match(p.name):
+            remove_written(p, CHECKPOINT)
+        elif is_temporary(p):
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # not empty: it holds what typ did not write
+        folder.rmdir()
 
 
-def save_torch(path: Path, obj: dict) -> None:
-    """torch.save ``obj`` to ``path`` atomically (temporary name, then rename)."""
+def save_torch(path: Path, obj: dict, *, stage: str | None = None) -> None:
+    """torch.save ``obj`` to ``path`` atomically (temporary name, then rename); with ``stage``,
+    recorded as that stage's (:func:`typ.io.atomic_path`)."""
     buf = io.BytesIO()
     torch.save(obj, buf)
-    write_bytes(path, buf.getvalue())
+    write_bytes(path, buf.getvalue(), stage=stage)
 
 
 def load_latest(directory: Path) -> dict | None:

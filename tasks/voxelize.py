@@ -25,10 +25,12 @@ import typ.store
 import typ.voxel
 from typ.io import code_digest, hash_files
 from typ.sensors import mount_height
-from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels, written_by_store
+from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels
 from typ.voxel import Grid, box_map, voxelize
 
 log = logging.getLogger(__name__)
+
+STAGE = "voxelize"
 #: the reader's, voxelizer's and store's source: a change to any redoes every scene
 _CODE = code_digest(typ.formats.opv2v, typ.voxel, typ.store)
 
@@ -113,7 +115,7 @@ def run_scene(item: ScenarioInput, *, cfg: VoxelizeConfig, out: Path) -> dict:
                                 item.dataset, item.name, agent_id, ts)
                 yield (agent_id, ts), (occupancy, boxes)
 
-    write_scene_voxels(path, records(), grid=grid, input_hash=digest)
+    write_scene_voxels(path, records(), grid=grid, input_hash=digest, stage=STAGE, inside=out)
     return {**base, "skipped": None, "seconds": time.perf_counter() - t0, **stats}
 
 
@@ -150,7 +152,7 @@ def scene_stage(cfg: Config, root: Path) -> SceneStage:
         items = plan_inputs(source)
         return items, stale_outputs(items, out)
 
-    return SceneStage(out=out, plan=plan, owned=written_by_store, work=run_scene,
+    return SceneStage(out=out, plan=plan, work=run_scene,
                       work_kwargs={"cfg": cfg.voxelize, "out": out},
                       label=lambda item: item.name, summarize=lambda results: summarize(results, grid),
                       unchanged=unchanged)

@@ -22,7 +22,7 @@ from bounded import run_bounded
 from test_crash_safety import stage_env
 
 READERS = {"binfile", "pcd", "opv2v", "kitti", "nuscenes", "waymo", "store", "voxel", "params", "cli", "artifact",
-           "show"}
+           "show", "io", "kitti-odometry"}
 #: what one bad input may take: a named error within this time and this much more memory
 SECONDS, MEMORY = 2.0, 1 << 30
 
@@ -54,10 +54,11 @@ def snapshot(folder: Path) -> dict[str, object]:
         info = p.stat()
         return (info.st_size, info.st_mtime_ns) if info.st_size > 1 << 26 else p.read_bytes()
 
-    # .typ/ is typ's own state (gitignored): its per-stage lock files (typ.io.output_lock) stay by
-    # design, as removing a lock file another run waits on would let a third one in; never a user's output
+    # a .typ/ folder is typ's own state (gitignored, dvcignored), wherever it is: the lock beside an output
+    # folder (typ.io.output_lock) stays by design, as removing a lock file another run waits on would let a
+    # third one in; never a user's output
     return {str(p.relative_to(folder)): state(p) for p in sorted(folder.rglob("*"))
-            if p.relative_to(folder).parts[0] != ".typ"}
+            if ".typ" not in p.relative_to(folder).parts}
 
 
 def run_stage_process(argv: list[str], cwd: Path, env: dict) -> tuple[int, str]:

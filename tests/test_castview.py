@@ -148,3 +148,37 @@ def test_a_surface_inside_min_range_does_not_blind_the_sensor():
     tris = np.concatenate([room_t, np.array([[0, 1, 2], [0, 2, 3]]) + len(room_v)])
     pts = castview.cast(verts, tris, IDEAL, np.random.default_rng(0))
     assert len(pts) == IDEAL.n_beams * IDEAL.n_azimuths and np.linalg.norm(pts, axis=1).min() > IDEAL.min_range
+
+
+def test_the_road_under_a_car_seen_only_by_its_roof_is_the_road_around_it():
+    """The ego's returns in the 6 x 4 cells of a car 4.8 x 3.2 m are its roof only, 1.5 m over the
+    road (the road under it hidden): those cells take the nearest road cell's height, not the
+    roof's (which a 3-cell median would not remove either)."""
+    rng = np.random.default_rng(2)
+    road = _plane(rng, slope=0.0, n=20000)
+    car = (road[:, 0] >= 8.0) & (road[:, 0] < 12.8) & (road[:, 1] >= -1.6) & (road[:, 1] < 1.6)
+    roof = road[car] + [0.0, 0.0, 1.5]
+    h = castview.ground_heights(np.concatenate([road[~car], roof]), GRID, -2.2)
+    # the car's cells are rows 42..47 and columns 30..33 (their centres 8.4..12.4 m and -1.2..1.2 m)
+    assert GRID.centers(0)[[42, 47]] == pytest.approx([8.4, 12.4])
+    assert GRID.centers(1)[[30, 33]] == pytest.approx([-1.2, 1.2])
+    np.testing.assert_array_equal(h, np.full((64, 64), -2.2))
+
+
+def test_label_boxes_are_scaled_in_every_dimension_about_their_centre():
+    """generate.cast.label_boxes = 0.8: a labelled car 4.5 x 2.0 x 1.6 m turned 30 deg is built as
+    the box of the same centre and heading 3.6 x 1.6 x 1.28 m (its height too, not only its
+    footprint): its 8 corners, as geometry.box_corners gives them, are the model's last 8 vertices."""
+    ego = np.array([[20.0, 0.0, -1.5], [20.0, 0.4, -1.5], [20.0, -0.4, -1.5]])
+    occ = np.zeros((8, 64, 64), bool)
+    seen = np.zeros((64, 64), bool)
+    car = np.array([12.0, -3.0, -1.4, 4.5, 2.0, 1.6, np.radians(30.0)])
+    params = CastConfig(label_boxes=0.8, road="generated", carve=False)
+    v_boxes, t_boxes = castview.scene_model(ego, occ, GRID, IDEAL, params=params, label_boxes=car[None], mask=seen)
+    v_none, t_none = castview.scene_model(ego, occ, GRID, IDEAL, params=dataclasses.replace(params, label_boxes=0.0),
+                                          mask=seen)
+    assert len(v_boxes) - len(v_none) == 8 and len(t_boxes) - len(t_none) == 12
+    want = box_corners(car * [1, 1, 1, 0.8, 0.8, 0.8, 1])[0]
+    got = v_boxes[-8:].astype(np.float64)
+    np.testing.assert_allclose(got[np.lexsort(got.T)], want[np.lexsort(want.T)], atol=1e-5)
+    np.testing.assert_allclose(np.ptp(got[:, 2]), 1.6 * 0.8, atol=1e-5)

@@ -8,6 +8,7 @@ import pytest
 from cli.main import main
 from typ.compare import compare, pareto_front, segments
 from typ.config import config_from_dict
+from typ.io import record_path
 from typ.tracking import PARENT_ENV, stage_run
 
 
@@ -84,7 +85,9 @@ def test_a_new_report_replaces_only_the_plots_of_the_earlier_one(store):
     tmp_path, uri, a, b = store
     out = tmp_path / "reports" / "again"
     compare([a, b], out=out, name="again", tracking_uri=uri)
-    (out / "again_vqvae_curves.png").rename(out / "again_gone_curves.png")   # a stage no longer compared
+    # a stage no longer compared: as if an earlier report had drawn it (its record moves with it)
+    (out / "again_vqvae_curves.png").rename(out / "again_gone_curves.png")
+    record_path(out / "again_vqvae_curves.png").rename(record_path(out / "again_gone_curves.png"))
     report = out / "again.md"
     report.write_text(report.read_text().replace("(again_vqvae_curves.png)", "(again_gone_curves.png)"))
     (out / "again_my_sketch.png").write_bytes(b"a user's picture")

@@ -52,7 +52,9 @@ SCRIPT = textwrap.dedent("""
 
 
 def _files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    """Every output file's bytes; not typ's own state (.typ/: locks naming their holder, records naming inodes)."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and ".typ" not in p.relative_to(root).parts}
 
 
 def _placements(stdout: str, stderr: str) -> dict[tuple[str, str], dict[str, str]]:

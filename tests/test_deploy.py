@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import errno
 import os
+import shutil
 import signal
 import stat
 import subprocess
@@ -23,6 +24,7 @@ import yaml
 
 from flows.server import LocalServer
 from prefect_api import api_status
+from typ.io import atomic_path, write_manifest
 from typ.errors import TypError
 
 PARAMS = {
@@ -224,7 +226,7 @@ def _scene_unchanged(scene: str, *, out) -> dict | None:
 def _probe_stage(items, tmp_path):
     from tasks.scene_stage import SceneStage
 
-    return SceneStage(out=tmp_path / "out", plan=lambda: (items, []), owned=lambda path: True, work=_scene_work,
+    return SceneStage(out=tmp_path / "out", plan=lambda: (items, []), work=_scene_work,
                       work_kwargs={"out": tmp_path},
                       label=str, summarize=lambda rs: {"order": [r["scenario"] for r in rs],
                                                        "ran": sum(r["skipped"] is None for r in rs)},
@@ -252,7 +254,18 @@ def test_settle_unchanged_logs_a_no_op_stage_only_when_nothing_has_work(tmp_path
     assert common.settle_unchanged("probe", None, tmp_path, _probe_stage(["old_a", "new_b"], tmp_path)) is None
     stale = _probe_stage(["old_a"], tmp_path)
     stale = SceneStage(**{**stale.__dict__, "plan": lambda: (["old_a"], [tmp_path / "out" / "gone"])})
+    # a stale path that is not the stage's (nothing there, or a folder typ did not write) is no work ...
+    assert common.settle_unchanged("probe", None, tmp_path, stale)["kept_not_written_by_typ"] == 1
+    runs.clear()
+    (tmp_path / "out" / "gone").mkdir(parents=True)
+    assert common.settle_unchanged("probe", None, tmp_path, stale)["kept_not_written_by_typ"] == 1
+    runs.clear()
+    shutil.rmtree(tmp_path / "out" / "gone")
+    with atomic_path(tmp_path / "out" / "gone", stage="probe") as tmp:   # ... one the stage wrote is
+        tmp.mkdir()
+        write_manifest(tmp, "probe", {})
     assert common.settle_unchanged("probe", None, tmp_path, stale) is None
+    shutil.rmtree(tmp_path / "out" / "gone")
     (tmp_path / "out" / "scene").mkdir(parents=True)
     (tmp_path / "out" / "scene" / ".tmp-x.parquet.1").write_bytes(b"partial")   # a killed run's temporary
     assert common.settle_unchanged("probe", None, tmp_path, _probe_stage(["old_a"], tmp_path)) is None

@@ -242,3 +242,23 @@ def test_edit_figure_shows_before_after_and_the_changed_cells(monkeypatch):
     change = viz.error_image(voxelize(result.view.points, GRID), voxelize(view.points, GRID), per="voxel")[::-1, ::-1]
     changed = ~np.all(np.isclose(change, viz.TP_COLOUR) | np.isclose(change, viz.BACKGROUND), axis=2)
     assert changed.any() and not (changed & ~result.footprint).any()
+
+
+def test_a_pitched_and_rolled_vehicle_frame_moves_to_a_sensor_above_it_along_its_own_up():
+    """A Waymo car on a ramp (pitch -6 deg, roll 4 deg): its LiDAR is 2.2 m along the car's own up
+    axis, not the world's, so every point and box keeps its world position and the sensor sits at
+    origin + 2.2 * (the car's z axis). With pitch and roll 0 (the test above) the two agree."""
+    view = _view()
+    view = AgentView(view.agent_id, view.points, pose_to_matrix([5.0, 5.0, 2.0, 4.0, 10.0, -6.0]),  # roll, yaw, pitch
+                     view.boxes, view.box_labels, view.box_ids)
+    lifted = to_sensor_frame(Scene("s", "000000", {"7": view}), 2.2).ego
+    up = view.pose[:3, :3] @ [0.0, 0.0, 1.0]
+    assert abs(up[2]) < 0.995                                            # the car's up is not the world's
+    np.testing.assert_allclose(lifted.pose[:3, 3], view.pose[:3, 3] + 2.2 * up, atol=1e-12)
+    np.testing.assert_array_equal(lifted.pose[:3, :3], view.pose[:3, :3])
+    world = lambda v, p: v.pose[:3, :3] @ np.asarray(p[:3], np.float64) + v.pose[:3, 3]  # noqa: E731
+    for a, b in zip(view.points, lifted.points):
+        np.testing.assert_allclose(world(lifted, b), world(view, a), atol=1e-5)
+    for a, b in zip(view.boxes, lifted.boxes):
+        np.testing.assert_allclose(world(lifted, b), world(view, a), atol=1e-12)
+    np.testing.assert_array_equal(lifted.boxes[:, 3:], view.boxes[:, 3:])

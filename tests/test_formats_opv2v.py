@@ -207,3 +207,13 @@ def test_bad_meta_and_names(tmp_path):
     with pytest.raises(TypError, match="timestamp"):
         write_scene(scene, tmp_path)
     assert not list(tmp_path.iterdir())
+
+
+def test_timestamps_of_different_lengths_are_in_time_order(tmp_path):
+    """OPV2V's stamps are zero-padded (``000068``), where string and time order agree; a scenario
+    stamped ``9``, ``10``, ``100`` (a user's own layout) is listed in time order, not as strings
+    ("10" < "100" < "9"), so that a delay of one frame is the frame before."""
+    (tmp_path / "1").mkdir()
+    for name in ("10.yaml", "9.yaml", "100.yaml", "000011.yaml", "9_additional.yaml"):
+        (tmp_path / "1" / name).write_text("")
+    assert list_timestamps(tmp_path) == ["9", "10", "000011", "100"]

@@ -327,3 +327,47 @@ def test_a_large_segment_is_read_and_ingested_in_memory_of_a_few_frames(tmp_path
     xs = [yaml.safe_load((folder / "ego" / f"{t}.yaml").read_text())["lidar_pose"][0] for t in stamps]
     assert xs == pytest.approx([float(SEGMENT_FRAMES - 1 - i) for i in range(SEGMENT_FRAMES)])
     assert not list(folder.rglob(".rank-*"))
+
+
+def _pitched_frame(offset=(0.0, 0.0, 0.0), pixel_poses=True):
+    """The synthetic frame on a ramp: the frame pose and every TOP pixel pose (unless not
+    ``pixel_poses``) are roll 5 deg, pitch -8 deg, yaw 30 deg, the pixels moved ``offset`` in the
+    world. The frame pose is written out here as Waymo's ``Rz(yaw) Ry(pitch) Rx(roll)``, the pixel
+    poses as the six numbers Waymo stores. TOP's image is 3 x 4, one return in every pixel, so
+    that its points look along azimuths +-45 and +-135 deg (x and y both non-zero)."""
+    roll, pitch, yaw = np.radians([5.0, -8.0, 30.0])
+    rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
+    ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rz @ ry @ rx, [100.0, 200.0, 3.0]
+    frame = _synthetic_frame()
+    del frame.pose.transform[:]
+    frame.pose.transform.extend(pose.ravel().tolist())
+    top = next(laser for laser in frame.lasers if laser.name == dataset_pb2.LaserName.TOP)
+    image = np.zeros((3, 4, 4))
+    image[..., 0], image[..., 1] = 5.0 + np.arange(12).reshape(3, 4), 0.1
+    top.ri_return1.range_image_compressed = _matrix(image)
+    top.ri_return2.range_image_compressed = _matrix(np.zeros((3, 4, 4)))
+    top.ri_return1.range_image_pose_compressed = b""
+    if pixel_poses:
+        pixel_pose = np.zeros((3, 4, 6))
+        pixel_pose[...] = [roll, pitch, yaw, *(pose[:3, 3] + offset)]
+        top.ri_return1.range_image_pose_compressed = _matrix(pixel_pose)
+    return frame, pose
+
+
+def test_top_pixel_poses_with_pitch_and_roll_are_the_frame_pose_they_name(tmp_path):
+    """Pixel poses equal to a pitched and rolled frame pose leave the TOP points where the frame
+    alone puts them (a pixel pose built in another rotation order, or with pitch's or roll's sign
+    flipped, moves them); pixels captured 1 m further along world x land R_frame^T (1, 0, 0) away."""
+    still = _read(tmp_path, _pitched_frame(pixel_poses=False)[0]).points
+    frame, pose = _pitched_frame()
+    pitched = _read(tmp_path, frame).points
+    assert len(pitched) == 12 + 2 and np.abs(pitched[:12, :2]).min() > 2.0     # TOP first, then FRONT
+    np.testing.assert_allclose(pitched, still, atol=1e-5)
+    moved = _read(tmp_path, _pitched_frame(offset=(1.0, 0.0, 0.0))[0]).points
+    shift = pose[:3, :3].T @ [1.0, 0.0, 0.0]
+    assert abs(shift[2]) > 0.05                      # the pitch shows in the shift
+    np.testing.assert_allclose(moved[:12, :3] - pitched[:12, :3], np.tile(shift, (12, 1)), atol=1e-5)
+    np.testing.assert_allclose(moved[12:], pitched[12:])

@@ -426,7 +426,7 @@ def test_generated_rows_are_skipped_without_generated_data(project, tmp_path):
     ({"methods": ["cobevt"]}, "fusion.methods[0]"),
     ({"detector": {"lidar_range": [-50.0, -25.6, -3.0, 51.2, 25.6, 1.0]}}, "fusion.detector.lidar_range"),
     ({"robustness": {"delay_ms": [0, 150]}}, "fusion.robustness.delay_ms"),
-    ({"finetune_scenes": [0]}, "fusion.finetune_scenes"),
+    ({"finetune_scenes": [0]}, "fusion.finetune_scenes[0]"),
     ({"score_threshold": 1.5}, "fusion.score_threshold"),
     ({"pretrain_sources": ["both", "both"]}, "fusion.pretrain_sources"),
     ({"pretrain_sources": ["opv2v"]}, "fusion.pretrain_sources[0]"),
@@ -447,3 +447,19 @@ def test_config_names_come_from_the_registry():
     tiny = config_from_dict({}).fusion.methods
     assert list(tiny) == [m for m in METHODS if m in tiny] and {"none", "late"} <= set(tiny)
     assert [m.display for m in METHODS.values()] == ["No Fusion", "Early Fusion", "Late Fusion", "AttFuse", "V2X-ViT"]
+
+
+def test_a_listed_fine_tuning_size_equal_to_the_whole_set_is_the_all_column(monkeypatch):
+    """finetune_scenes [1, 12] on 12 training scenarios: 12 of 12 is "all" (Table 1's oracle for
+    scratch, the full budget), not a second column of the same runs on ``real-12``; a size past
+    the set is no column either."""
+    cfg = config_from_dict({"profile": "tiny", "fusion": {"finetune_scenes": [1, 12, 30]}}).fusion
+    monkeypatch.setattr(F, "list_scenarios", lambda folder: [f"s{i}" for i in range(12)])
+    monkeypatch.setattr(F, "unavailable", lambda folder: None)
+    plan = F.plan(cfg, F.Roots.from_config(cfg, Path("/nonexistent")))
+    assert plan.finetune_sets == {"0": 0, "1": 1, "all": None}
+    assert {r.data for r in plan.runs.values()} == {"real", "real-1", *cfg.pretrain_sources, "generated"}
+    assert {c.column for c in plan.cells if c.table == "table3"} == {"0", "1", "all"}
+    _check_table3_budgets(plan, cfg)
+    steps = {name: run.steps for name, run in plan.runs.items()}
+    assert steps["finetuneall-colwaymo-late"] == steps["oracle-late"] == cfg.steps

@@ -142,3 +142,23 @@ def test_the_report_columns_are_the_registry_in_order():
         "iou", "iou_0-20", "iou_20-40", "iou_40-80", "iou_seen", "iou_unseen", "iou_above_ground",
         "object_hit_rate", "chamfer_m", "jsd_r2dm", "mmd_r2dm"]
     assert {k for k, m in genscore.METRICS.items() if m.lower_is_better} == {"chamfer_m", "jsd_r2dm", "mmd_r2dm"}
+
+
+@pytest.mark.parametrize("grid", [GRID, Grid((-12.8, 12.8), (-12.8, 12.8), (-0.75, 3.25), (128, 128, 8))],
+                         ids=["tiny-0.8m-cells", "paper-0.2m-cells"])
+def test_a_cell_whose_only_return_is_a_car_roof_takes_the_road_around_it(grid):
+    """A car 4 x 2.4 m whose roof, 1.5 m up, is all the sensor saw of its cells (the road under it
+    hidden): their ground is the road beside the car, so the roof is above the ground; the roof's
+    own height as the ground would hide the car. On the tiny grid the car is 5 x 3 cells, on the
+    paper's 0.2 m cells 20 x 12, where a neighbourhood of 5 cells (1 m) would not reach the road."""
+    x, y = grid.centers(0), grid.centers(1)
+    car = ((x > 4.0) & (x < 8.0))[:, None] & ((y > -1.6) & (y < 0.8))[None, :]
+    assert car.sum() * grid.voxel_size[0] * grid.voxel_size[1] == pytest.approx(4.0 * 2.4)
+    v = np.zeros(grid.shape, bool)
+    v[..., 1] = True                        # the road, z = 0
+    v[car] = False
+    v[car, 4] = True                        # the roof, z = 1.5 m, and nothing below it
+    assert grid.centers(2)[[1, 4]].tolist() == [0.0, 1.5]
+    np.testing.assert_array_equal(local_ground(v, grid), np.zeros(grid.shape[:2]))
+    above = above_ground(v, grid)
+    assert above[car, 4].all() and (above & v).sum() == car.sum()

@@ -383,10 +383,30 @@ def test_ddpm_says_why_it_cannot_train_on_scans_without_point_classes(tmp_path):
 
 def test_the_config_offers_exactly_the_registered_readers():
     """``simulate.sources.<domain>.format`` and ``typ generate --format`` take the reader registry's
-    names; each reader's LiDAR is the preset of its name."""
+    names; each reader's LiDAR is the preset of its name, or the one it names (kitti-odometry:
+    KITTI's HDL-64E, when a drive's scans are not estimated or named another)."""
     from tasks.ingest import MOUNT_HEIGHT, READERS
     from typ.config import SINGLE_AGENT_FORMATS, SOURCE_FORMATS
     from typ.sensors import resolve
 
     assert tuple(READERS) == SINGLE_AGENT_FORMATS and SOURCE_FORMATS == SINGLE_AGENT_FORMATS + ("opv2v",)
-    assert MOUNT_HEIGHT == {name: resolve(name).mount_height for name in READERS}
+    assert {name: r.preset for name, r in READERS.items()} == {"kitti": "kitti", "nuscenes": "nuscenes",
+                                                               "waymo": "waymo", "kitti-odometry": "kitti"}
+    assert MOUNT_HEIGHT == {name: resolve(r.preset).mount_height for name, r in READERS.items()}
+
+
+def test_frames_are_numbered_in_time_order_when_their_stamps_differ_in_length(tmp_path):
+    """Stamps "10", "9", "100", "8" (a dataset's own, unpadded): time order is 8, 9, 10, 100, and
+    the written frames 000000..000003 keep it; as strings "10" < "100" < "8" < "9"."""
+    def frames():
+        for stamp in ("10", "9", "100", "8"):
+            pose = np.eye(4)
+            pose[0, 3] = float(stamp)                   # the frame's time, to tell them apart
+            yield Scene("s", stamp, {"ego": AgentView("ego", np.zeros((1, 4), np.float32), pose)})
+
+    (tmp_path / "s").mkdir()
+    assert write_frames(frames(), tmp_path / "s", sensor="waymo")["frames"] == 4
+    stamps = list_timestamps(tmp_path / "s")
+    assert stamps == ["000000", "000001", "000002", "000003"]
+    assert [read_scene(tmp_path / "s", t).ego.pose[0, 3] for t in stamps] == [8.0, 9.0, 10.0, 100.0]
+    assert not list((tmp_path / "s").rglob(".rank-*"))

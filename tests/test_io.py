@@ -4,7 +4,7 @@ import os
 import pytest
 
 from typ.errors import TypError
-from typ.io import atomic_path, hash_files, hash_obj, remove_stale_temporaries, write_bytes, write_json, write_manifest
+from typ.io import atomic_path, hash_files, record_path, hash_obj, remove_stale_temporaries, write_bytes, write_json, write_manifest
 
 
 def test_file_appears_only_when_complete(tmp_path):
@@ -39,8 +39,10 @@ def test_directory_swap(tmp_path):
         (tmp / "y.txt").write_text("two")
         write_manifest(tmp, "simulate", {"n": 2})
     assert sorted(p.name for p in target.iterdir()) == ["_typ.json", "y.txt"]
-    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
-    # another stage's folder, or one without a manifest, is not replaced
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]   # the scene alone; typ's record of it one folder up
+    assert record_path(target) == tmp_path.parent / ".typ" / "written" / tmp_path.name / "scene.json"
+    assert record_path(target).is_file()
+    # another stage's folder, or one changed since typ wrote it (its manifest deleted), is not replaced
     for stage in ("generate", "simulate"):
         with pytest.raises(TypError, match="typ did not write"):
             with atomic_path(target, stage=stage) as tmp:
@@ -48,7 +50,8 @@ def test_directory_swap(tmp_path):
                 write_manifest(tmp, stage, {})
                 if stage == "simulate":
                     (target / "_typ.json").unlink()
-    assert sorted(p.name for p in target.iterdir()) == ["y.txt"] and [p.name for p in tmp_path.iterdir()] == ["scene"]
+    assert sorted(p.name for p in target.iterdir()) == ["y.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
 
 
 def test_stale_temporaries_are_removed(tmp_path):

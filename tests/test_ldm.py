@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 from diffusers import T2IAdapter
-from diffusers.models.attention_processor import AttnProcessor2_0
+from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 
 from models.ldm import LatentDiffusion, OneTokenAttnProcessor
 from models.postprocess import postprocess
@@ -123,3 +123,31 @@ def test_one_token_attention_is_diffusers_attention(self_attention):
             assert torch.allclose(mine, g, rtol=1e-4, atol=1e-7), name
     assert skipped and all(".to_q." in n or ".to_k." in n or ".norm" in n for n in skipped)
     assert not any(".attn1.to_q." in n for n in skipped) if self_attention else True
+
+
+@pytest.mark.parametrize("batch, queries, tokens", [(1, 3, 3), (2, 5, 3), (2, 4, 2)])
+def test_one_token_attention_fed_several_tokens_computes_the_attention(batch, queries, tokens):
+    """Several context tokens: softmax over them is not 1 per token, so the short-cut does not hold
+    and the processor must give diffusers' attention, written out here as
+    to_out(softmax(q k^T / sqrt(d)) v) per head. (1, 3, 3): as many queries as tokens, where a
+    short-cut taken would broadcast without an error; a batch of 1 tells the token axis from the
+    batch axis. With one token it is to_out(to_v(context)) in every query."""
+    torch.manual_seed(0)
+    attn = Attention(query_dim=8, cross_attention_dim=6, heads=2, dim_head=4).eval()
+    x, context = torch.randn(batch, queries, 8), torch.randn(batch, tokens, 6)
+
+    def exact(context: torch.Tensor) -> torch.Tensor:
+        def heads(t: torch.Tensor) -> torch.Tensor:   # (B, N, 8) -> (B, 2, N, 4)
+            return t.reshape(t.shape[0], t.shape[1], 2, 4).transpose(1, 2)
+
+        q, k, v = heads(attn.to_q(x)), heads(attn.to_k(context)), heads(attn.to_v(context))
+        w = torch.softmax(q @ k.transpose(-1, -2) / 4 ** 0.5, dim=-1)
+        return attn.to_out[0]((w @ v).transpose(1, 2).reshape(batch, queries, 8))
+
+    with torch.no_grad():
+        got = OneTokenAttnProcessor()(attn, x, context)
+        torch.testing.assert_close(got, exact(context), rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(got, got[:, :1].expand_as(got), atol=1e-4)   # the queries do matter
+        one = OneTokenAttnProcessor()(attn, x, context[:, :1])
+        torch.testing.assert_close(one, exact(context[:, :1]), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(one, attn.to_out[0](attn.to_v(context[:, :1])).expand_as(one))

@@ -160,3 +160,40 @@ def test_the_report_section_ranks_against_re_simulation_and_says_when_frid_is_mi
     assert "| true reference scan | 0.990 [0.980, 1.000]" in text
     assert "FRID / FPVD not scored: artifacts/ddpm/features/range" in text
     assert "**beats** re-simulation on on_beam" in text and "hybrid" in text and "does not beat" in text
+
+
+def test_the_row_profile_interval_resamples_views_when_scenes_hold_different_numbers():
+    """Scenes of 1, 2, 3 and 6 views, every view with the same rows (truth: half the azimuth bins
+    of every beam; the method: of the upward beams only). Whichever scenes a resample draws, the
+    pooled profiles are those rows over the drawn views, so the L1 is the same in every replicate
+    and the interval has no width. Dividing by the whole set's view count (equal to the drawn
+    views' only when every scene holds as many) or not resampling the truth would spread it."""
+    per = {"s0": 1, "s1": 2, "s2": 3, "s3": 6}
+    scenes = [s for s, n in per.items() for _ in range(n)]
+    truth = [scan(20.0, step=2) for _ in scenes]
+    scorer = realism.RealismScorer(SENSOR, scenes, truth)
+    scorer.add("upper", [t[t[:, 2] > 0.0] for t in truth])
+    iv = scorer.summarize(n_boot=200)["upper"]["row_profile_l1"]
+    lower = sum(1 for e in SENSOR.elevations_deg if e < 0.0)
+    assert iv.value == pytest.approx(0.5 * lower / 16, abs=1e-12)
+    assert iv.low == pytest.approx(iv.value, abs=1e-12) and iv.high == pytest.approx(iv.value, abs=1e-12)
+    # scenes that fill their rows differently (every 1st, 2nd, 3rd or 4th azimuth bin), copied:
+    # the drawn scenes' truth against the same scenes' views is 0 in every replicate
+    fill = {"s0": 1, "s1": 2, "s2": 3, "s3": 4}
+    truth = [scan(20.0, step=fill[s]) for s in scenes]
+    scorer = realism.RealismScorer(SENSOR, scenes, truth)
+    scorer.add("copy", truth)
+    assert scorer.summarize(n_boot=200)["copy"]["row_profile_l1"].to_dict() == {"value": 0.0, "low": 0.0, "high": 0.0}
+
+
+def test_the_row_profile_lists_the_lowest_beam_first_as_the_elevations_do():
+    """profiles() pairs with ``layout.elevations_deg`` (ascending) in row_profile.csv: the method
+    that keeps the upward beams only has its returns in the last rows, the ones above 0 deg."""
+    scenes, truth = _pairs(n_scenes=2, per=1)
+    scorer = realism.RealismScorer(SENSOR, scenes, truth)
+    scorer.add("upper", [t[t[:, 2] > 0.0] for t in truth])
+    profiles = scorer.profiles(["upper", "absent"])
+    elevations = scorer.layout.elevations_deg
+    assert list(elevations) == sorted(elevations)
+    assert profiles["upper"] == [0.5 if e > 0.0 else 0.0 for e in elevations]
+    assert profiles["truth"] == [0.5] * 16 and np.isnan(profiles["absent"]).all()

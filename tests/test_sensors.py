@@ -160,11 +160,12 @@ def test_beam_heights_must_match_the_beams():
 
 
 def test_ingest_takes_its_heights_from_the_presets():
-    from tasks.ingest import FORMATS, MOUNT_HEIGHT, SENSOR_HEIGHT
+    from tasks.ingest import MOUNT_HEIGHT, READERS, SENSOR_HEIGHT
 
-    assert MOUNT_HEIGHT == {fmt: SENSORS[fmt].mount_height for fmt in FORMATS}
+    assert MOUNT_HEIGHT == {fmt: SENSORS[r.preset].mount_height for fmt, r in READERS.items()}
     # Waymo's points come in the vehicle frame, on the ground: lifted by the LiDAR's height
-    assert SENSOR_HEIGHT == {"kitti": 0.0, "nuscenes": 0.0, "waymo": SENSORS["waymo"].mount_height}
+    assert SENSOR_HEIGHT == {"kitti": 0.0, "nuscenes": 0.0, "waymo": SENSORS["waymo"].mount_height,
+                             "kitti-odometry": 0.0}
 
 
 # ---------------------------------------------------------------- the presets against real frames
@@ -231,3 +232,24 @@ def test_the_waymo_preset_is_the_real_top_lidar_calibration():
     spec = SENSORS["waymo"]
     assert np.abs(np.degrees(top.beam_inclinations) - spec.elevations_deg).max() <= 0.0005
     assert np.reshape(top.extrinsic.transform, (4, 4))[2, 3] == pytest.approx(spec.mount_height, abs=0.0005)
+
+
+def test_the_mount_height_on_a_sloped_road_is_the_distance_to_the_road_plane():
+    """A sensor 1.8 m from a road that rises 8 deg ahead and falls 5 deg to the left, seen from
+    the sensor (a pitched mount, or a road that changes grade): the mount height is the sensor's
+    distance to the plane along its normal, not the plane's height under the sensor on its z axis
+    (1.8 * sqrt(1 + p^2 + q^2) = 1.824 m here), and the normal is the plane's. Each return is the
+    ray's intersection with the plane, written out here, not cast by typ."""
+    p, q, height = np.tan(np.radians(8.0)), np.tan(np.radians(-5.0)), 1.8
+    normal = np.array([-p, -q, 1.0]) / np.sqrt(1.0 + p * p + q * q)     # the road: normal . x = -height
+    elevation = np.radians(np.arange(-28.0, -5.0, 1.5))
+    azimuth = np.radians(np.arange(-180.0, 180.0, 0.4))
+    e, a = np.meshgrid(elevation, azimuth, indexing="ij")
+    rays = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
+    down = rays @ normal
+    scan = rays[down < 0] * (-height / down[down < 0])[:, None]
+    assert np.allclose(scan @ normal, -height)
+    fit = fit_sensor(scan)
+    assert fit.mount_height == pytest.approx(height, abs=1e-6)
+    np.testing.assert_allclose(fit.ground_normal, normal, atol=1e-6)
+    assert fit.n_beams == len(elevation)

@@ -8,6 +8,9 @@
 - That server refuses a request without the project's secret (``.prefect/api-auth``, mode 0600,
   made once and kept), which CMD gets as ``PREFECT_API_AUTH_STRING``; a server the user names
   gets no secret of typ's.
+- ``kill -9`` of the typ process leaves no server behind, for each way typ starts one: the local
+  server of ``typ serve`` / ``with-server`` / ``run all``, the local server and the Dask cluster of
+  ``--runner dask``, and Prefect's temporary server: each is gone, its port closed, within seconds.
 """
 from __future__ import annotations
 
@@ -371,3 +374,112 @@ def test_a_typ_command_reports_no_usage_to_mlflow_or_prefect(tmp_path):
     out = subprocess.run([sys.executable, "-c", TELEMETRY, str(tmp_path)], env=env, cwd=REPO, capture_output=True,
                          text=True, check=True, timeout=120).stdout
     assert json.loads(out.strip().splitlines()[-1]) == [True, False]
+
+
+# --- kill -9: no server left ----------------------------------------------------------------------
+
+#: how long a server may outlive a typ process killed by SIGKILL (it gets SIGTERM at once, then shuts down)
+AFTER_KILL = 30.0
+
+#: what ``typ run STAGE --runner dask`` starts before its stage's work: the CLI's environment, typ's local
+#: Prefect server for the workers (flows.common.api_for_workers) and the LocalCluster of its task runner;
+#: then it reports its processes and the API, and waits to be killed
+DASK_RUN = """
+import json, os, sys, time
+from pathlib import Path
+
+import psutil
+
+if __name__ == "__main__":
+    from cli.main import _setup_env
+
+    _setup_env(Path(sys.argv[1]))
+    from flows.common import api_for_workers, runner
+
+    with api_for_workers():
+        from prefect.settings import PREFECT_API_URL
+
+        with runner(2, "dask") as task_runner:
+            task_runner.client.run(os.getpid)   # the cluster starts with its first use
+            pids = [p.pid for p in psutil.Process().children(recursive=True)]
+            json.dump({"api": PREFECT_API_URL.value(), "pids": pids}, open(sys.argv[2] + ".tmp", "w"))
+            os.rename(sys.argv[2] + ".tmp", sys.argv[2])
+            time.sleep(600)
+"""
+
+#: what a ``typ run STAGE`` without PREFECT_API_URL does first: the CLI's environment, then Prefect's
+#: own temporary server at the first client; reports that server and waits to be killed
+TEMPORARY_SERVER = """
+import json, os, sys, time
+from pathlib import Path
+
+from cli.main import _setup_env
+
+_setup_env(Path(sys.argv[1]))
+from prefect.client.orchestration import get_client
+
+with get_client(sync_client=True) as client:
+    client.hello()
+from prefect.server.api.server import SubprocessASGIServer
+
+server = SubprocessASGIServer._instances[None]
+json.dump({"api": server.api_url, "pids": [server.server_process.pid]}, open(sys.argv[2] + ".tmp", "w"))
+os.rename(sys.argv[2] + ".tmp", sys.argv[2])
+time.sleep(600)
+"""
+
+
+def _port_of(api_url: str) -> int:
+    return int(api_url.split(":")[2].split("/")[0])
+
+
+def _gone(pids: list[int]) -> bool:
+    return not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+
+
+def _kill_left(pids: list[int]) -> None:
+    """The failure these tests look for: clean up what outlived its typ process, by pid."""
+    for pid in pids:
+        try:
+            psutil.Process(pid).kill()
+        except psutil.Error:
+            pass
+
+
+@pytest.mark.parametrize("script", ["dask run", "temporary server"])
+def test_kill_9_leaves_no_server_behind(tmp_path, script):
+    """SIGKILL runs no code of typ's: each server (and Dask worker) must end because its parent did."""
+    report = tmp_path / "started.json"
+    code = {"dask run": DASK_RUN, "temporary server": TEMPORARY_SERVER}[script]
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path), str(report)], cwd=REPO, env=_env(tmp_path),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    started = {"pids": []}
+    try:
+        started = _wait("the servers to start", lambda: (report.is_file() and json.loads(report.read_text()))
+                        or (proc.poll() is not None and pytest.fail(proc.stdout.read()[-3000:])), timeout=300)
+        assert started["pids"] and not _port_free(_port_of(started["api"]))
+        os.kill(proc.pid, signal.SIGKILL)   # the typ process alone, as `kill -9 PID` does
+        proc.wait(30)
+        _wait("the servers and workers to end after their parent", lambda: _gone(started["pids"]), timeout=AFTER_KILL)
+        assert _port_free(_port_of(started["api"]))
+    finally:
+        _stop(proc)
+        _kill_left(started["pids"])
+
+
+def test_kill_9_of_typ_serve_leaves_no_server_behind(tmp_path):
+    """``typ serve``'s local server (the one ``typ with-server`` and ``typ run all`` start too) ends with it."""
+    port = free_port()
+    serve = _typ(tmp_path, "serve", "--port", str(port), env=_env(tmp_path))
+    servers: list[psutil.Process] = []
+    try:
+        servers = _wait("typ serve to start its Prefect server", lambda: _server_children(serve.pid), timeout=300)
+        _wait("the server to listen", lambda: not _port_free(port), timeout=300)
+        os.kill(serve.pid, signal.SIGKILL)
+        serve.wait(30)
+        _wait("the server to end after typ serve", lambda: _gone([p.pid for p in servers]), timeout=AFTER_KILL)
+        assert _port_free(port)
+    finally:
+        _stop(serve)
+        _kill_left([p.pid for p in servers])
+

@@ -1,11 +1,14 @@
 """Nothing a user owns is deleted (the classes of input below).
 
-typ deletes or replaces only what it can prove it wrote: a folder holding the manifest
-(``_typ.json``) of the stage that replaces it, a typ voxel file, a checkpoint folder of typ's.
-Anything else in an output folder is left alone and counted in the stage's metrics. One run of
-a stage at a time per output (a lock the second run is refused by, naming the holder's pid).
-``typ edit`` never writes over its own input, keeps symlinks as links, and the CLI names a path
-that is in the way (a file where a folder goes, a name too long) instead of a traceback.
+typ deletes or replaces only what it can prove it wrote: what its record beside it says the
+stage put there (``.typ/written/``: the inode and fingerprint of the tree), never a folder that
+merely holds a manifest (``_typ.json``), a copy, an unpacked archive or a folder a user added to.
+Anything else in an output folder is left alone and counted in the stage's metrics. One run at a
+time per output folder, whatever root or name reaches it (a lock beside the folder the second run
+is refused by, naming the holder's pid; a lock path that is not typ's own file is named, never
+written). ``typ edit`` never writes over its own input nor through a link (its copy holds real
+files), and the CLI names a path that is in the way (a file where a folder goes, a name too long,
+a link out of the output) instead of a traceback.
 """
 from __future__ import annotations
 
@@ -134,6 +137,20 @@ def test_edit_whose_output_is_or_holds_its_input_is_refused(cli, tmp_path, capsy
     assert snapshot(tmp_path / "data") == before   # the input and its _typ.json as they were
 
 
+@pytest.mark.parametrize("command", ["edit", "show"])
+def test_a_picture_of_the_users_where_typ_draws_one_is_not_replaced(cli, tmp_path, capsys, command):
+    scenario = write_scenario(tmp_path / "data")
+    out = tmp_path / "out"
+    argv = ("edit", str(scenario), *EDIT) if command == "edit" else ("show", str(scenario), "--no-resim")
+    assert cli(*argv, "--out", str(out)) == 0, capsys.readouterr().err
+    png = next(p for p in out.iterdir() if p.suffix == ".png")
+    assert cli(*argv, "--out", str(out)) == 0, capsys.readouterr().err    # its own: replaced
+    png.write_bytes(b"my drawing")                                       # now the user's
+    assert cli(*argv, "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert "typ: error" in err and str(png) in err and png.read_bytes() == b"my drawing"
+
+
 def test_edit_does_not_replace_a_folder_it_did_not_write(cli, tmp_path, capsys):
     scenario = write_scenario(tmp_path / "data")
     out = tmp_path / "out"
@@ -145,7 +162,7 @@ def test_edit_does_not_replace_a_folder_it_did_not_write(cli, tmp_path, capsys):
     assert snapshot(out) == {"scen": None, "scen/notes.txt": b"mine"}
 
 
-# --- class 5: symlinks are copied as links --------------------------------------------------------
+# --- class 5: a copy holds real files, never a link to write through ---------------------------------
 
 class TookTooLong(Exception):
     """Not an OSError, which shutil.copytree would collect and carry on after."""
@@ -165,23 +182,58 @@ def time_limit(seconds: float):
         signal.signal(signal.SIGALRM, previous)
 
 
-def test_edit_copies_a_symlink_loop_as_a_link(cli, tmp_path, capsys):
+def test_edit_copies_links_as_real_files_and_a_loop_once(cli, tmp_path, capsys):
     scenario = write_scenario(tmp_path / "data")
     (scenario / "1" / "loop").symlink_to("..")                # loops: 1/loop/1/again/1/loop/...
     (scenario / "1" / "again").symlink_to("..")
     (scenario / "calib.txt").write_text("P0: 1 0 0")
-    (scenario / "also.txt").symlink_to("calib.txt")           # a link inside the scenario stays relative
+    (scenario / "also.txt").symlink_to("calib.txt")           # a link inside the scenario
     shared = tmp_path / "shared.txt"
     shared.write_text("outside")
     (scenario / "shared.txt").symlink_to(os.path.relpath(shared, scenario))   # one that points outside
+    (scenario / "gone.txt").symlink_to(tmp_path / "nowhere")                 # a dangling one
     out = tmp_path / "out"
     with time_limit(30):
         assert cli("edit", str(scenario), *EDIT, "--out", str(out)) == 0, capsys.readouterr().err
     copy = out / "scen"
-    assert all(os.readlink(copy / "1" / name) == ".." for name in ("loop", "again"))
-    assert os.readlink(copy / "also.txt") == "calib.txt" and (copy / "also.txt").read_text() == "P0: 1 0 0"
-    assert (copy / "shared.txt").is_symlink() and (copy / "shared.txt").read_text() == "outside"
+    assert not any(p.is_symlink() for p in copy.rglob("*"))
+    assert (copy / "also.txt").read_text() == "P0: 1 0 0" and (copy / "shared.txt").read_text() == "outside"
+    assert not (copy / "gone.txt").exists() and not (copy / "1" / "loop").exists()
     assert sum(1 for _ in copy.rglob("*")) < 20
+    assert shared.read_text() == "outside"
+
+
+def test_edit_of_a_scenario_assembled_from_links_leaves_the_dataset_as_it_was(cli, tmp_path, capsys):
+    """OPV2V / V2V4Real copies are often scenarios whose agent folders link to a dataset kept
+    elsewhere: the edited .pcd and .yaml must land in the copy, not in the dataset."""
+    dataset = write_scenario(tmp_path / "dataset")
+    scenario = tmp_path / "data" / "scen"
+    scenario.mkdir(parents=True)
+    (scenario / "1").symlink_to(dataset / "1")
+    before = snapshot(tmp_path / "dataset")
+    out = tmp_path / "out"
+    assert cli("edit", str(scenario), *EDIT, "--out", str(out)) == 0, capsys.readouterr().err
+    assert snapshot(tmp_path / "dataset") == before
+    from typ.formats.opv2v import read_scene
+
+    assert not (out / "scen" / "1").is_symlink()
+    assert list(read_scene(out / "scen", "000000").ego.box_ids) == []
+    assert list(read_scene(dataset, "000000").ego.box_ids) == [5]
+
+
+def test_a_file_written_into_a_folder_typ_builds_never_passes_a_link(tmp_path):
+    from typ.io import atomic_path, write_text
+
+    elsewhere = tmp_path / "dataset"
+    elsewhere.mkdir()
+    (elsewhere / "000000.pcd").write_bytes(b"the user's points")
+    with pytest.raises(TypError, match="never writes through a link"):
+        with atomic_path(tmp_path / "out" / "scen", stage="edit") as tmp:
+            tmp.mkdir(parents=True)
+            (tmp / "1").symlink_to(elsewhere)
+            write_text(tmp / "1" / "000000.pcd", "typ's points")
+    assert (elsewhere / "000000.pcd").read_bytes() == b"the user's points"
+    assert not (tmp_path / "out" / "scen").exists()
 
 
 # --- class 14: paths in the way ---------------------------------------------------------------------
@@ -216,7 +268,9 @@ def test_a_long_scenario_name_fits_its_temporary_names(cli, tmp_path, capsys):
     assert len(png) == 1 and len(png[0].name.encode()) <= 255 and png[0].name.endswith("_edit.png")
     assert cli("show", str(scenario), "--no-resim", "--out", str(tmp_path / "shown")) == 0, capsys.readouterr().err
     shown = sorted((tmp_path / "shown").iterdir())
-    assert shown and all(len(p.name.encode()) <= 255 and p.suffix == ".png" for p in shown)
+    assert len(shown) > 1 and all(len(p.name.encode()) <= 255 and p.suffix == ".png" for p in shown)
+    records = list((tmp_path / ".typ" / "written" / "shown").iterdir())   # typ's records of the pictures, one up
+    assert len(records) == len(shown) and all(len(p.name.encode()) <= 255 for p in records)
 
 
 def test_atomic_path_fits_temporaries_and_names_a_name_too_long(tmp_path):
@@ -237,9 +291,21 @@ def test_atomic_path_fits_temporaries_and_names_a_name_too_long(tmp_path):
 # --- class 3: a stage deletes only its own stale outputs ---------------------------------------------
 
 def _manifest(folder: Path, **fields) -> Path:
+    """A folder a user (or an archive) made that claims to be typ's: a manifest written by hand."""
     folder.mkdir(parents=True)
     (folder / "000000.pcd").write_bytes(b"points")
     (folder / "_typ.json").write_text(json.dumps(fields))
+    return folder
+
+
+def _typ_wrote(folder: Path, stage: str, **fields) -> Path:
+    """A folder ``stage`` wrote as typ writes it (typ.io.atomic_path: its record beside it)."""
+    from typ.io import atomic_path, write_manifest
+
+    with atomic_path(folder, stage=stage) as tmp:
+        tmp.mkdir(parents=True)
+        (tmp / "000000.pcd").write_bytes(b"points")
+        write_manifest(tmp, stage, fields)
     return folder
 
 
@@ -260,24 +326,28 @@ def test_generate_stage_removes_only_scenarios_it_wrote(tmp_path, monkeypatch):
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     (tmp_path / "in" / "target" / "test").mkdir(parents=True)
     gen = tmp_path / "gen"
-    legacy = {"key": "k", "counts": {"frames": 1}, "generated_agents": ["12"]}   # before stages named themselves
-    _manifest(gen / "target" / "test" / "old", **legacy)
-    _manifest(gen / "target" / "test" / "older", stage="generate", **legacy)
-    _manifest(gen / "gone" / "split" / "old", stage="generate", **legacy)        # a set dropped from generate.sets
-    _manifest(gen / "target" / "test" / "simulated", stage="simulate", key="k", counts={})   # another stage's
+    fields = {"key": "k", "counts": {"frames": 1}, "generated_agents": ["12"]}
+    _typ_wrote(gen / "target" / "test" / "old", "generate", **fields)
+    _typ_wrote(gen / "gone" / "split" / "old", "generate", **fields)          # a set dropped from generate.sets
+    _typ_wrote(gen / "target" / "test" / "noted", "generate", **fields)
+    (gen / "target" / "test" / "noted" / "notes.txt").write_text("mine")     # a user's note added since
+    _manifest(gen / "target" / "test" / "legacy", key="k", counts={})       # the legacy form: proves nothing
+    _manifest(gen / "target" / "test" / "claims", stage="generate", **fields)  # a manifest anyone can write
+    _typ_wrote(gen / "target" / "test" / "simulated", "simulate", key="k")  # another stage's
     (gen / "target" / "test" / "photos").mkdir()
     (gen / "target" / "test" / "photos" / "a.jpg").write_bytes(b"jpeg")
     (gen / "gone" / "split" / "thesis").mkdir()
     (gen / "gone" / "split" / "thesis" / "main.tex").write_text("years of work")
     (gen / "gone" / "notes.txt").write_text("mine")
-    ours = ("target/test/old", "target/test/older", "gone/split/old")
-    mine = {k: v for k, v in snapshot(gen).items() if not any(k == o or k.startswith(o + "/") for o in ours)}
+    ours = ("target/test/old", "gone/split/old")
+    mine = {k: v for k, v in snapshot(gen).items()
+            if not any(k == o or k.startswith(o + "/") for o in ours) and ".typ" not in k}
     monkeypatch.setattr(flows.generate, "load_generator", lambda root, cfg: None)
     finished = _quiet_stage_run(monkeypatch)
     metrics = flows.generate.generate_flow.fn(params="params.yaml", root=str(tmp_path))
     assert {k: v for k, v in snapshot(gen).items() if k in mine} == mine
     assert not any((gen / o).exists() for o in ours)
-    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (3, 3) and finished == metrics
+    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (2, 6) and finished == metrics
 
 
 def test_simulate_stage_removes_only_scenarios_it_wrote(tmp_path, monkeypatch):
@@ -290,7 +360,7 @@ def test_simulate_stage_removes_only_scenarios_it_wrote(tmp_path, monkeypatch):
         "source": zero, "real_cav": zero, "target": {"train": 0, "val": 0, "test": 0, "pretrain": 0}}}}
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     sim = tmp_path / "sim"
-    _manifest(sim / "target" / "train" / "target_train_0000", key="k", job={}, counts={}, typ_version="0")
+    _typ_wrote(sim / "target" / "train" / "target_train_0000", "simulate", key="k", job={}, counts={})
     (sim / "target" / "train" / "my_scan" / "1").mkdir(parents=True)
     (sim / "target" / "train" / "my_scan" / "1" / "000000.pcd").write_bytes(b"my points")
     mine = snapshot(sim / "target" / "train" / "my_scan")
@@ -314,26 +384,34 @@ def test_voxelize_stage_removes_only_voxel_files_it_wrote(tmp_path, monkeypatch)
     grid = Grid((-8.0, 8.0), (-8.0, 8.0), (-2.0, 2.0), (16, 16, 4))
     ours = scene_path(tmp_path / "vox", "target", "train", "gone")
     write_scene_voxels(ours, {("1", "000000"): (np.zeros(grid.shape, bool), np.zeros((*grid.shape[:2], 1), bool))},
-                       grid=grid, input_hash="h")
+                       grid=grid, input_hash="h", stage="voxelize")
+    forged = scene_path(tmp_path / "vox", "target", "train", "copied")   # typ's file, copied by a user
+    forged.write_bytes(ours.read_bytes())
     theirs = scene_path(tmp_path / "vox", "target", "train", "mine")
     theirs.write_bytes(b"PAR1 a parquet file of the user's")
     finished = _quiet_stage_run(monkeypatch)
     cfg = load_config(tmp_path / "params.yaml")
     metrics = per_scene_stage("voxelize", cfg, tmp_path, voxelize.scene_stage(cfg, tmp_path))
-    assert not ours.exists() and theirs.read_bytes() == b"PAR1 a parquet file of the user's"
-    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (1, 1) and finished == metrics
+    assert not ours.exists() and theirs.read_bytes() == b"PAR1 a parquet file of the user's" and forged.is_file()
+    assert (metrics["removed_stale"], metrics["kept_not_written_by_typ"]) == (1, 2) and finished == metrics
 
 
-def test_a_new_training_run_removes_only_checkpoint_folders_typ_wrote(tmp_path):
-    from tasks.training import run_checkpoint_dir, save_torch
+def test_a_new_training_run_removes_only_checkpoints_typ_wrote(tmp_path):
+    from tasks.training import run_checkpoint_dir, save_checkpoint, save_torch
 
     root = tmp_path / "checkpoints"
-    save_torch(root / "0123456789abcdef" / "step_00000002.pt", {"step": 2})
+    save_checkpoint(root / "0123456789abcdef", 2, {})
+    save_checkpoint(root / "0123456789abcdef", 3, {})
+    save_checkpoint(root / "00000000aaaaaaaa", 1, {})
+    (root / "00000000aaaaaaaa" / "notes.md").write_text("mine")               # a note beside typ's checkpoint
+    save_torch(root / "copied" / "step_00000001.pt", {"step": 1})             # a checkpoint typ did not write
     (root / "notes").mkdir(parents=True)
     (root / "notes" / "step_00000001.pt.txt").write_text("mine")
     (root / "readme.md").write_text("mine")
     assert run_checkpoint_dir(root, "fedcba9876543210") == root / "fedcba9876543210"
-    assert sorted(p.name for p in root.iterdir()) == ["notes", "readme.md"]
+    assert sorted(p.name for p in root.iterdir()) == ["00000000aaaaaaaa", "copied", "notes", "readme.md"]
+    assert [p.name for p in (root / "00000000aaaaaaaa").iterdir()] == ["notes.md"]
+    assert (root / "copied" / "step_00000001.pt").is_file()
     assert (root / "notes" / "step_00000001.pt.txt").read_text() == "mine"
 
 
@@ -398,7 +476,7 @@ HOLDER = """
 import sys, time
 from pathlib import Path
 from typ.io import output_lock
-with output_lock(Path(sys.argv[1]), "voxelize", Path(sys.argv[2])):
+with output_lock("voxelize", Path(sys.argv[2])):
     print("held", flush=True)
     time.sleep(300)
 """
@@ -413,15 +491,231 @@ def test_the_lock_of_a_killed_run_is_released(tmp_path):
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(OutputBusy, match=f"voxelize.*pid {holder.pid}"):
-            with output_lock(tmp_path, "voxelize", out):
+        with pytest.raises(OutputBusy, match=f"pid {holder.pid} \\(voxelize\\)"):
+            with output_lock("voxelize", out):
                 pass
-        with output_lock(tmp_path, "voxelize", tmp_path / "elsewhere"):   # another output: not locked
+        with output_lock("voxelize", tmp_path / "elsewhere"):   # another output: not locked
             pass
     finally:
         holder.kill()
         holder.wait()
-    with output_lock(tmp_path, "voxelize", out):    # the kernel dropped the dead holder's lock
-        with pytest.raises(OutputBusy):             # and a second holder in this process waits its turn
-            with output_lock(tmp_path, "voxelize", out):
+    with output_lock("voxelize", out):    # the kernel dropped the dead holder's lock
+        with pytest.raises(OutputBusy):   # and a second holder in this process waits its turn
+            with output_lock("voxelize", out):
                 pass
+
+
+# --- class 15: what decides a delete is typ's record, which a copy or an archive does not carry ------------
+
+def _stage_wrote_and_cleaned(tmp_path, monkeypatch, arrange) -> tuple[dict, dict]:
+    """generate's stage with nothing to generate, after ``arrange(gen)`` placed what lies in its output:
+    (the snapshot of the output before, after)."""
+    import flows.generate
+
+    params = {"profile": "tiny", "generate": {"input": "in", "out": "gen",
+                                              "sets": [{"dataset": "target", "split": "test", "references": "vehicles"}]}}
+    (tmp_path / "in" / "target" / "test").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    gen = tmp_path / "gen"
+    arrange(gen)
+    before = snapshot(gen)
+    monkeypatch.setattr(flows.generate, "load_generator", lambda root, cfg: None)
+    _quiet_stage_run(monkeypatch)
+    flows.generate.generate_flow.fn(params="params.yaml", root=str(tmp_path))
+    return before, snapshot(gen)
+
+
+@pytest.mark.parametrize("how", ["same place", "another root"])
+def test_an_unpacked_archive_of_typ_outputs_and_records_is_left_alone(tmp_path, monkeypatch, how):
+    import shutil
+    import tarfile
+
+    origin = tmp_path / "origin" / "gen" / "target" / "test"
+    _typ_wrote(origin / "old", "generate", key="k")
+    archive = tmp_path / "outputs.tar"
+    with tarfile.open(archive, "w") as tar:   # the folder and typ's records beside it: .typ/ travels too
+        tar.add(tmp_path / "origin" / "gen", arcname="gen")
+    if how == "same place":
+        shutil.rmtree(tmp_path / "origin" / "gen")
+    root = tmp_path / ("origin" if how == "same place" else "other")
+
+    def unpack(gen):
+        gen.parent.mkdir(parents=True, exist_ok=True)
+        with tarfile.open(archive) as tar:
+            tar.extractall(gen.parent, filter="tar")
+        assert (gen / "target" / ".typ" / "written" / "test" / "old.json").is_file()
+
+    before, after = _stage_wrote_and_cleaned(root, monkeypatch, unpack)
+    assert after == before
+
+
+def test_a_copy_of_a_typ_output_folder_with_notes_is_left_alone(tmp_path, monkeypatch):
+    import shutil
+
+    def arrange(gen):
+        split = gen / "target" / "test"
+        _typ_wrote(split / "old", "generate", key="k")
+        shutil.copytree(split / "old", split / "my_copy")           # cp -r: the manifest comes along
+        (split / "my_copy" / "notes.txt").write_text("mine")
+        shutil.copytree(split / "old", split / "exact_copy", copy_function=shutil.copy2)
+        shutil.rmtree(split / "old")
+        shutil.copytree(split / "exact_copy", split / "old", copy_function=shutil.copy2)   # same path, a copy
+
+    before, after = _stage_wrote_and_cleaned(tmp_path, monkeypatch, arrange)
+    assert after == before
+
+
+def test_a_forged_record_beside_a_users_folder_proves_nothing(tmp_path, monkeypatch):
+    from typ.io import record_path
+
+    def arrange(gen):
+        mine = _manifest(gen / "target" / "test" / "mine", stage="generate", key="k")
+        record = record_path(mine)
+        record.parent.mkdir(parents=True)
+        record.write_text(json.dumps({"stage": "generate", "ino": 1, "tree": "0" * 64}))
+
+    before, after = _stage_wrote_and_cleaned(tmp_path, monkeypatch, arrange)
+    assert after == before
+
+
+@pytest.mark.parametrize("command", ["edit", "generate"])
+def test_a_folder_claiming_to_be_typs_is_not_replaced(cli, tmp_path, capsys, command):
+    scenario = write_scenario(tmp_path / "data")
+    out = tmp_path / "out"
+    if command == "edit":
+        argv, claimed = ("edit", str(scenario), *EDIT), out / "scen"
+        _manifest(claimed, stage="edit", source=str(scenario))
+    else:
+        if not KITTI.is_dir():
+            pytest.skip(f"no KITTI frames at {KITTI}")
+        from tasks.ingest import read_frames
+
+        first = read_frames("kitti", KITTI)[0].name
+        argv, claimed = ("generate", "--format", "kitti", "--input", str(KITTI)), out / "single_agent" / "kitti" / first
+        _manifest(claimed, stage="ingest", frames=1)
+    (claimed / "thesis.tex").write_text("years of work")
+    before = snapshot(out)
+    assert cli(*argv, "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert "typ: error" in err and str(claimed) in err and "did not write" in err and "Traceback" not in err
+    assert {k: v for k, v in snapshot(out).items() if ".typ" not in k} == {k: v for k, v in before.items()}
+
+
+def test_generate_through_a_link_in_its_output_is_refused(cli, tmp_path, capsys):
+    if not KITTI.is_dir():
+        pytest.skip(f"no KITTI frames at {KITTI}")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "000000").mkdir()
+    (mine / "000000" / "thesis.tex").write_text("years of work")
+    out = tmp_path / "out"
+    (out / "single_agent").mkdir(parents=True)
+    (out / "single_agent" / "kitti").symlink_to(mine)            # an archive or a careless link
+    before = snapshot(mine)
+    assert cli("generate", "--format", "kitti", "--input", str(KITTI), "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert "typ: error" in err and "never writes through a link" in err and "Traceback" not in err
+    assert snapshot(mine) == before
+
+
+# --- class 16: a lock is a file typ made, one per output folder whatever names it ---------------------------
+
+def _lock_in_the_way(tmp_path: Path, kind: str) -> tuple[Path, Path]:
+    """An output folder, and a user's file that what lies at its lock path would let typ write."""
+    from typ.io import lock_path
+
+    out = tmp_path / "project" / "data" / "gen"
+    precious = tmp_path / "precious.txt"
+    precious.write_text("years of work")
+    path = lock_path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if kind == "link":
+        path.symlink_to(precious)
+    elif kind == "hard link":
+        os.link(precious, path)
+    elif kind == "a user's file":
+        path.write_text("my lock notes, not typ's")
+    elif kind == "folder":
+        path.mkdir()
+        (path / "inside.txt").write_text("mine")
+    elif kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "state folder is a file":
+        path.parent.rmdir()
+        path.parent.write_text("mine")
+    elif kind == "state folder is a link":
+        path.parent.rmdir()
+        (tmp_path / "elsewhere").mkdir()
+        (tmp_path / "elsewhere" / path.name).write_text("mine")
+        path.parent.symlink_to(tmp_path / "elsewhere")
+    return out, precious
+
+
+LOCK_CASES = ["link", "hard link", "a user's file", "folder", "fifo", "state folder is a file", "state folder is a link"]
+
+
+@pytest.mark.parametrize("kind", LOCK_CASES)
+def test_a_lock_path_that_is_not_typs_file_is_named_and_left_alone(tmp_path, kind):
+    from typ.io import lock_path, output_lock
+
+    out, precious = _lock_in_the_way(tmp_path, kind)
+    before = snapshot(tmp_path)
+    with pytest.raises(TypError) as err:
+        with output_lock("generate", out):
+            pass
+    assert str(lock_path(out).parent if kind.startswith("state") else lock_path(out)) in str(err.value)
+    assert "lock" in err.value.field
+    assert snapshot(tmp_path) == before and precious.read_text() == "years of work"
+
+
+@pytest.mark.parametrize("kind", ["link", "hard link"])
+def test_typ_generate_with_a_planted_lock_link_loses_no_file(cli, tmp_path, capsys, kind):
+    if not KITTI.is_dir():
+        pytest.skip(f"no KITTI frames at {KITTI}")
+    out, precious = _lock_in_the_way(tmp_path, kind)
+    assert cli("generate", "--format", "kitti", "--input", str(KITTI), "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert "typ: error" in err and "lock" in err and "Traceback" not in err
+    assert precious.read_text() == "years of work" and not out.exists()
+
+
+def test_every_name_of_one_output_folder_shares_its_lock(tmp_path, monkeypatch):
+    from typ.io import OutputBusy, lock_path, output_lock
+
+    out = tmp_path / "a" / "data" / "gen"
+    out.mkdir(parents=True)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "link").symlink_to(out)
+    monkeypatch.chdir(tmp_path / "a")
+    names = [Path("data/gen"), Path("data/../data/gen"), tmp_path / "b" / "link", tmp_path / "b" / ".." / "a" / "data" / "gen"]
+    assert len({lock_path(n) for n in names}) == 1 and lock_path(out).parent == out.parent / ".typ"
+    with output_lock("generate", out):
+        for name in names:
+            with pytest.raises(OutputBusy, match=str(out)):
+                with output_lock("simulate", name):   # another stage, another root: the same folder
+                    pass
+    with output_lock("generate", names[1]):   # released
+        pass
+
+
+def test_two_roots_writing_one_output_never_delete_each_others_temporaries(tmp_path):
+    """The lock is the output folder's, not a project's: while one root's run holds it, another root's
+    run is refused before it cleans up temporaries (which would be the first run's files in flight)."""
+    from typ.io import OutputBusy, output_lock, remove_stale_temporaries
+
+    shared = tmp_path / "shared_out"
+    in_flight = shared / "target" / ".tmp-scen.abcd1234"
+    in_flight.mkdir(parents=True)
+    (in_flight / "000000.pcd").write_bytes(b"being written")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(tmp_path / "root_a"), str(shared)], env=env,
+                              stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(OutputBusy):
+            with output_lock("voxelize", tmp_path / "root_b" / ".." / "shared_out"):
+                remove_stale_temporaries(shared)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert (in_flight / "000000.pcd").read_bytes() == b"being written"

@@ -11,21 +11,32 @@ naming the file, what was expected, and the stage that makes it.
 Neither file is trusted before it is checked. ``config.json`` is at most :data:`MAX_CONFIG_BYTES`;
 the safetensors header (an 8-byte length, then JSON naming each tensor's dtype, shape and byte
 range) is read and checked against the file's size before any tensor is, and the file is at most
-:data:`MAX_WEIGHTS_BYTES`. The module a config describes is first built on torch's ``meta``
-device, which allocates nothing: a config of huge sizes, or of zero sizes that make the
-constructor divide by zero, is refused there, and so is one whose tensors are not the header's,
-before the module is built for real.
+:data:`MAX_WEIGHTS_BYTES`. Every number of the config is then checked before anything is built
+(:func:`check_config`): a module's sizes are counts of layers, each holding at least one tensor of
+the file, or widths, each a dimension of one, so no integer may exceed the larger of the tensor
+count and the largest dimension; the few fields that size the input instead (:data:`INPUT_SIZES`)
+have bounds of their own, and a part of the config written from a params block (the detector's,
+V2X-ViT's, the SSC network's) meets that block's bounds. The module is then built on torch's
+``meta`` device, which allocates nothing, and the build stops as soon as it has registered more
+parameters than the file holds tensors: a config of zero sizes that make the constructor divide by
+zero is refused there, and so is one whose tensors are not the header's, before the module is built
+for real.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import functools
 import json
 import math
+import threading
 from pathlib import Path
 from typing import Any, Callable, Mapping, TypeVar
 
 import torch
 from torch import nn
 
+from typ.config import MAX_TIMESTEPS, build_typed
 from typ.errors import TypError
 from typ.inputs import MiB, load_json, open_regular, read_regular
 from typ.io import write_bytes, write_json
@@ -41,6 +52,16 @@ MAX_HEADER_BYTES = 16 * MiB
 #: bytes per element of the safetensors dtypes a torch state dict can hold
 _DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1,
                 "BOOL": 1, "U16": 2, "U32": 4, "U64": 8, "C64": 8}
+
+#: config keys that size a module's input, not its weights: no tensor of the file shows them, so each
+#: has a bound of its own. An image's side and a pooling factor are a grid's (``voxelize.grid.shape``:
+#: at most 8192 cells a side); a latent's side is 16x the paper's 64, as the UNet's coordinate
+#: channels hold 3 floats per latent cell
+INPUT_SIZES = {"sample_size": 1024, "height": 8192, "width": 8192, "downsample": 8192}
+#: a float outside a params block is a rate, a decay or a threshold
+MAX_FLOAT = 1e6
+#: fields a stage saves beside the config that size work when the model is used (T: its noise schedule)
+SAVED_SIZES = {"train_timesteps": MAX_TIMESTEPS}
 
 M = TypeVar("M", bound=nn.Module)
 
@@ -165,17 +186,119 @@ def load_into(module: M, state: dict[str, torch.Tensor], path: Path, stage: str)
     return module
 
 
+def check_config(meta: dict, header: dict[str, tuple[str, tuple[int, ...]]], path: Path, stage: str) -> None:
+    """Every number of a ``config.json`` (:func:`read_config`) before any module is built; the error names
+    ``path`` and the field.
+
+    In ``config``: a mapping with the fields of a params block (:func:`params_block`) meets that block's
+    bounds and checks; elsewhere each integer is at most :func:`size_limit` in absolute value (a layer
+    count holds a tensor of the file per layer, a width is a dimension of one) and each list at most that
+    long, an :data:`INPUT_SIZES` key within its own bound, and each float finite and at most
+    :data:`MAX_FLOAT` in size. Beside it, each :data:`SAVED_SIZES` field is an integer within its bound.
+    """
+    limit = size_limit(header)
+    why = (f"a layer count holds a tensor of {WEIGHTS} per layer and a width is a dimension of one: the "
+           f"{stage} stage's file holds {len(header)} tensors, none wider than {max_dimension(header)}")
+    stack = [("config", "config", meta["config"])]
+    while stack:
+        name, key, value = stack.pop()
+        if isinstance(value, bool) or value is None or isinstance(value, str):
+            continue
+        if isinstance(value, float):
+            if not (math.isfinite(value) and abs(value) <= MAX_FLOAT):
+                raise TypError(path, name, f"a finite number of at most {MAX_FLOAT:g} in size (a rate, a decay "
+                               "or a threshold)", value)
+        elif isinstance(value, int):
+            most = INPUT_SIZES.get(key, limit)
+            if abs(value) > most:
+                raise TypError(path, name, f"an integer of at most {most} in size "
+                               f"({'a size of the input' if key in INPUT_SIZES else why})", value)
+        elif isinstance(value, list):
+            if len(value) > limit:
+                raise TypError(path, name, f"a list of at most {limit} items ({why})", len(value))
+            stack.extend((f"{name}[{i}]", key, v) for i, v in enumerate(value))
+        elif isinstance(value, dict):
+            block = params_block(value)
+            if block is None:
+                stack.extend((f"{name}.{k}", k, v) for k, v in value.items())
+                continue
+            built = build_typed(block, value, str(path), name)
+            if hasattr(built, "check"):
+                built.check(str(path), name)
+    for key, most in SAVED_SIZES.items():
+        if key in meta and (isinstance(meta[key], bool) or not isinstance(meta[key], int) or
+                            not 1 <= meta[key] <= most):
+            raise TypError(path, key, f"an integer in [1, {most}] (written by the {stage} stage)", meta[key])
+
+
+def size_limit(header: dict[str, tuple[str, tuple[int, ...]]]) -> int:
+    """The largest size a module config's integer may give (:func:`check_config`): the header's tensor
+    count or its largest dimension, whichever is larger."""
+    return max(len(header), max_dimension(header))
+
+
+def max_dimension(header: dict[str, tuple[str, tuple[int, ...]]]) -> int:
+    return max((d for _, shape in header.values() for d in shape), default=0)
+
+
+def params_block(value: dict):
+    """The params config class (:mod:`typ.config`) whose fields are exactly ``value``'s keys, or None: a
+    module config keeps its params block as written (``fusion.detector``, ``fusion.v2xvit``, ``ssc.network``)."""
+    return _params_blocks().get(frozenset(value))
+
+
+@functools.lru_cache(maxsize=1)
+def _params_blocks() -> dict[frozenset, type]:
+    import typ.config
+
+    classes = {c for c in vars(typ.config).values()
+               if isinstance(c, type) and dataclasses.is_dataclass(c) and c not in typ.config.LIMITS}
+    return {frozenset(f.name for f in dataclasses.fields(c) if f.init and f.name != "source"): c for c in classes}
+
+
+@contextlib.contextmanager
+def _parameter_budget(tensors: int, path: Path, stage: str):
+    """Stop a module's construction (in this thread) once it has registered more parameters than the
+    file holds ``tensors``: a config whose depth builds more is not the file's module, and building all
+    of it (100,000 layers) would take minutes even on the meta device."""
+    from torch.nn.modules.module import register_module_parameter_registration_hook
+
+    most = tensors + 16  # a few spare: a constructor may register a parameter and then replace it
+    count, thread = 0, threading.get_ident()
+
+    def hook(module, name, param):
+        nonlocal count
+        if threading.get_ident() != thread:
+            return None
+        count += 1
+        if count > most:
+            raise TypError(path, "config", f"a model config the {stage} stage writes, whose module holds the "
+                           f"{tensors} tensors of {WEIGHTS} (a depth or count of it is too large)",
+                           f"a module of more than {most} parameters")
+        return None
+
+    handle = register_module_parameter_registration_hook(hook)
+    try:
+        yield
+    finally:
+        handle.remove()
+
+
 def load_module(folder: Path, build: Callable[[dict], M], stage: str) -> tuple[M, dict]:
     """Rebuild a module saved by :func:`save_module`: ``build(config)`` then its weights.
 
-    Returns (module in eval mode, the whole config.json). A config ``build`` rejects (a
-    missing key, a bad value, a size of zero), or one whose tensors are not those in the
-    weights' header (a huge size), raises naming the file too, before anything is allocated.
+    Returns (module in eval mode, the whole config.json). A config whose numbers the weights'
+    header rules out (:func:`check_config`), one ``build`` rejects (a missing key, a bad value,
+    a size of zero), or one whose tensors are not those in the header, raises naming the file
+    too, before anything is allocated.
     """
     folder = Path(folder)
     meta = read_config(folder, stage)
     header = read_weights_header(folder, stage)
-    with torch.device("meta"):  # builds the module's structure, allocates none of its tensors
+    check_config(meta, header, folder / CONFIG, stage)
+    # the meta device builds the structure and allocates none of its tensors; every parameter of
+    # the module is one of the header's tensors, so a build registering more is cut short
+    with torch.device("meta"), _parameter_budget(len(header), folder / CONFIG, stage):
         skeleton = _build(folder, build, meta["config"], stage)
     check_against_header(skeleton, header, folder / WEIGHTS, stage)
     module = _build(folder, build, meta["config"], stage)

@@ -32,11 +32,11 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from typ.compare_plots import (MAX_PANELS, StageData, _number, pareto_front, plot_bands,  # noqa: F401
+from typ.compare_plots import (COMPARE, MAX_PANELS, StageData, _number, pareto_front, plot_bands,  # noqa: F401
                                plot_curves, plot_finals, plot_pareto, plot_sweeps, segments)
 from typ.config import Config
 from typ.errors import TypError
-from typ.io import write_text
+from typ.io import remove_written, write_text
 from typ.reporting import markdown_table
 
 
@@ -217,7 +217,7 @@ def write_report(client, sets: list[RunSet], out: Path, name: str) -> Path:
     labels = [s.label for s in sets]
     data = gather(client, sets)
     for old in earlier_plots(out / f"{_slug(name)}.md"):
-        old.unlink(missing_ok=True)
+        remove_written(old, COMPARE)
     lines = [f"{REPORT_TITLE}{name}", "",
              "Written by `typ compare` from the MLflow store; plots are beside this file.", ""]
     rows = []

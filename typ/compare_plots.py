@@ -10,6 +10,9 @@ from pathlib import Path
 
 from typ.io import atomic_path
 
+#: what typ's records name as the writer of a ``typ compare`` plot (:func:`typ.io.written_by`)
+COMPARE = "compare"
+
 
 BAND = re.compile(r"^\d+(\.\d+)?-\d+(\.\d+)?$")
 BAND_NAMES = ("overall", "all")
@@ -92,7 +95,7 @@ def _grid(n: int, width: float = 4.6, height: float = 3.2):
 def _save(fig, path: Path, title: str) -> Path:
     fig.suptitle(title, fontsize=12, fontweight="bold")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
+    with atomic_path(path, stage=COMPARE) as tmp:  # recorded: a later report of the name replaces it
         fig.savefig(tmp, format="png", dpi=110)
     return path
 

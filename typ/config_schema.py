@@ -6,11 +6,13 @@ Editors with a YAML language server complete and check ``params.yaml`` against t
 equal. The schema says what :func:`typ.config.load_config` says about structure and types: the
 known keys of every block (``additionalProperties: false``), integers, numbers (finite: YAML's
 ``.nan`` / ``.inf`` are rejected by the loader only), strings, booleans, the allowed values of a
-choice, and the length of a fixed list such as ``voxelize.grid.shape``. Bounds and relations
-between fields (``lr > 0``, ``agents_min <= agents_max``) are checked by each block's ``check``
-at load time, not here. No key of a stage block is required: the profile's defaults fill what
-``params.yaml`` leaves out. A dataclass inside a list (``generate.sets``) is not merged with
-defaults, so there its fields without a default are required.
+choice, the length of a fixed list such as ``voxelize.grid.shape``, and the bounds declared beside
+the fields (:class:`typ.config.Bound`: ``minimum`` / ``maximum``, exclusive at an open end;
+:class:`typ.config.Length`: ``minItems`` / ``maxItems``). A product of a list's numbers
+(:class:`typ.config.Product`, a grid's voxels) and relations between fields (``agents_min <=
+agents_max``) are checked by the loader only. No key of a stage block is required: the profile's
+defaults fill what ``params.yaml`` leaves out. A dataclass inside a list (``generate.sets``) is not
+merged with defaults, so there its fields without a default are required.
 """
 from __future__ import annotations
 
@@ -18,9 +20,9 @@ import dataclasses
 import inspect
 import types
 import typing
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from typ.config import PROFILES, Config
+from typ.config import PROFILES, Bound, Config, Length
 
 SCHEMA_FILE = "params.schema.json"
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -35,7 +37,7 @@ def config_schema() -> dict:
 
 
 def _object(tp, defs: dict, *, partial: bool) -> dict:
-    hints = typing.get_type_hints(tp)
+    hints = typing.get_type_hints(tp, include_extras=True)
     fields = [f for f in dataclasses.fields(tp) if f.init and f.name != "source"]
     out: dict[str, Any] = {"type": "object"}
     doc = inspect.getdoc(tp)
@@ -53,6 +55,12 @@ def _object(tp, defs: dict, *, partial: bool) -> dict:
 def _schema(tp, defs: dict, *, partial: bool) -> dict:
     """The schema of one field type; ``partial``: a block merged over the profile's defaults."""
     origin = typing.get_origin(tp)
+    if origin is Annotated:
+        inner, *marks = typing.get_args(tp)
+        out = _schema(inner, defs, partial=partial)
+        for mark in marks:
+            out.update(_limit(mark, out))
+        return out
     if dataclasses.is_dataclass(tp):
         name = tp.__name__ if partial else f"{tp.__name__}Item"
         if name not in defs:
@@ -84,3 +92,15 @@ def _schema(tp, defs: dict, *, partial: bool) -> dict:
     if tp is Any:
         return {}
     raise TypeError(f"config type {tp!r} has no JSON Schema form")
+
+
+def _limit(mark, schema: dict) -> dict:
+    """The JSON Schema keywords of a bound on a number or a list's (or mapping's) length."""
+    if isinstance(mark, Bound):
+        return {"exclusiveMinimum" if mark.low_open else "minimum": mark.low,
+                "exclusiveMaximum" if mark.high_open else "maximum": mark.high}
+    if isinstance(mark, Length):
+        if schema.get("type") == "object":
+            return {"minProperties": mark.low, "maxProperties": mark.high}
+        return {"minItems": mark.low, "maxItems": mark.high}
+    return {}

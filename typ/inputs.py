@@ -8,6 +8,10 @@ recursion limit. So every reader of user input opens its file through :func:`ope
 :func:`read_regular` / :func:`read_text`) and parses through :func:`load_yaml` / :func:`load_json`,
 with a size cap that fits what the file holds; values that must be numbers go through
 :func:`finite_numbers`, which turns a 400-digit integer into a TypError, not an OverflowError.
+
+A path that a dataset names (an index's entry, a split file's frame id, a file or folder found in
+it) is taken only through :func:`inside`: it must lead to a place inside the dataset's root, links
+followed, so that a hostile or careless index cannot make typ read a file from elsewhere.
 """
 from __future__ import annotations
 
@@ -30,6 +34,39 @@ MAX_DEPTH = 32
 #: YAML nodes (scalars, lists, mappings) in one document once aliases are expanded: an OPV2V yaml
 #: with 100 vehicles has about 3,000, params.yaml about 1,000
 MAX_YAML_NODES = 100_000
+
+
+def inside(path: str | os.PathLike, root: str | os.PathLike, *, where: str | os.PathLike | None = None,
+           field: str = "path") -> Path:
+    """``path`` as typ opens it (``root / path``; an absolute ``path`` as it is) when it leads to a place
+    inside ``root``, else TypError naming ``where`` (default: the joined path) and ``field``.
+
+    Every reader of a dataset takes each path the dataset names through this one check: an index's
+    entry (a nuScenes ``lidar_path``), a split file's frame id, and a file or folder found by listing
+    the root (a KITTI ``velodyne/*.bin``, an OPV2V agent's ``.pcd``: there each agent folder is the
+    root, :func:`typ.formats.opv2v.agent_file`). "Inside" is decided on real paths
+    (:func:`os.path.realpath`: ``..`` resolved and every link on the way followed, a link that
+    does not resolve included), so an absolute path, a ``..`` that climbs out, and a link in the root
+    whose target lies elsewhere are all refused before anything is opened. The root itself may be a
+    link (a user pointing at a dataset kept elsewhere): the check compares against its real path.
+    The path returned is the one named (not its real path), so names derived from it (a scenario
+    named after its file) stay what the dataset calls them.
+
+    Usage, for a new reader: ``bin_path = inside(record_path, root, where=index_file, field="lidar_path")``,
+    then open ``bin_path`` with :func:`open_regular` / :func:`read_regular`.
+    """
+    named = Path(root) / path
+    try:
+        real_root, real = os.path.realpath(root), os.path.realpath(named)
+    except ValueError:   # a NUL character, which no file name holds
+        raise TypError(root if where is None else where, field, "a path without NUL characters",
+                       os.fspath(path)) from None
+    if real != real_root and not real.startswith(real_root.rstrip(os.sep) + os.sep):
+        shown = str(root) if os.path.abspath(root) == real_root else f"{root} (real path {real_root})"
+        raise TypError(named if where is None else where, field,
+                       f"a path inside {shown}: relative to it, without a '..' that climbs out, and through "
+                       "no link that leads elsewhere", f"{os.fspath(path)} -> {real}")
+    return named
 
 
 def _size_text(n: int) -> str:

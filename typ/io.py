@@ -4,11 +4,16 @@ Every file typ writes goes to a temporary name beside its final path and is rena
 into place only once complete, so a killed run never leaves a half-written file under
 a final name, and a failed stage leaves the previous outputs intact.
 
-typ replaces or deletes a folder only when it can prove it wrote it: every folder it puts in
-place holds a manifest naming the stage that wrote it (:func:`write_manifest`,
-:func:`written_by`). A user's folder in an output folder is left alone. One run of a stage
-at a time writes an output (:func:`output_lock`): a run deletes the temporaries a killed run
-left, and another's would be in flight.
+typ replaces or deletes only what it can prove it wrote. The proof is a record typ keeps beside
+each thing a stage puts in place (:func:`atomic_path` with ``stage``): ``<folder>/../.typ/written/
+<folder name>/<name>.json`` (:func:`record_path`) holds the stage, the inode and a fingerprint of the whole tree (every entry's name,
+kind, size, modification time and inode), taken as typ renamed it into place. A copy, an
+unpacked archive, a folder a user added a note to, or a manifest anyone wrote (``_typ.json``)
+does not match its record, so it is left alone (:func:`written_by`, :func:`remove_written`).
+typ never writes through a link: a folder it is building holds real files only, and a stage's
+writes under its output folder never pass a link (``inside``). One run at a time writes an
+output folder, whatever root or name reaches it (:func:`output_lock`: a lock beside the folder's
+real path): a run deletes the temporaries a killed run left, and another's would be in flight.
 """
 from __future__ import annotations
 
@@ -38,8 +43,6 @@ _TMP_EXTRA = len(TMP_PREFIX) + len("old-.") + 10
 #: the manifest typ writes into every folder it makes (a scenario of simulate or generate, a
 #: ``typ edit`` copy, a frame ``typ generate`` takes in); it names the stage that wrote the folder
 SCENARIO_MANIFEST = "_typ.json"
-#: a manifest larger than this is not typ's (typ's are a few hundred bytes)
-_MANIFEST_MAX_BYTES = 1 << 20
 
 
 def fit_name(name: str, room: int = NAME_MAX) -> str:
@@ -78,44 +81,159 @@ def check_folder(path: str | os.PathLike, *, where: str | os.PathLike, field: st
 
 
 def write_manifest(folder: str | os.PathLike, stage: str, fields: dict) -> None:
-    """``folder``'s manifest: ``fields`` and the ``stage`` that wrote the folder, typ's proof that
-    the folder is its own to replace or delete (:func:`written_by`)."""
+    """``folder``'s manifest: ``fields`` and the ``stage`` that wrote the folder (what it was made
+    from, for the stage's own cache keys; the proof that typ wrote it is its record, :func:`written_by`)."""
     write_json(Path(folder) / SCENARIO_MANIFEST, {"stage": stage, **fields})
 
 
-def written_by(folder: str | os.PathLike, stage: str) -> bool:
-    """Whether ``folder`` is a folder (not a link) holding the manifest of ``stage``.
+#: typ's own state beside what it writes: ``written/`` (its records) and the locks of the outputs there
+STATE_DIR = ".typ"
+#: a record is a few hundred bytes
+_RECORD_MAX_BYTES = 64 * 1024
 
-    A manifest from before manifests named their stage (a ``key`` and ``counts``, no ``stage``)
-    counts as the stage's: only typ wrote those."""
-    folder, manifest = Path(folder), Path(folder) / SCENARIO_MANIFEST
-    if folder.is_symlink() or not folder.is_dir() or not manifest.is_file() or manifest.is_symlink() \
-            or manifest.stat().st_size > _MANIFEST_MAX_BYTES:
+
+def record_path(path: str | os.PathLike) -> Path:
+    """Where typ keeps its record of ``path`` (:func:`written_by`): one folder up, in the :data:`STATE_DIR`
+    beside ``path``'s folder (``a/b/c`` -> ``a/.typ/written/b/c.json``), where the lock of an output
+    folder ``b`` lives too (:func:`lock_path`). Never in ``path``'s own folder: a folder of scenarios
+    holds scenarios only (OpenCOOD takes every sub-folder of a split for one)."""
+    path = Path(os.path.abspath(path))
+    folder = path.parent
+    return (folder.parent / STATE_DIR / "written" / fit_name(folder.name or "_", NAME_MAX)
+            / (fit_name(path.name, NAME_MAX - 5) + ".json"))
+
+
+def _fingerprint(path: Path) -> dict | None:
+    """``path``'s inode and a digest of its whole tree, not following links: each entry's relative
+    name, kind, size, modification time and inode. None when nothing (or a link) is there."""
+    try:
+        top = os.lstat(path)
+    except OSError:
+        return None
+    if stat.S_ISLNK(top.st_mode):
+        return None
+    h = hashlib.sha256()
+
+    def add(rel: str, info: os.stat_result) -> None:
+        h.update(f"{rel}\0{stat.S_IFMT(info.st_mode)}\0{info.st_size}\0{info.st_mtime_ns}\0{info.st_ino}\n"
+                 .encode(errors="surrogateescape"))
+
+    if not stat.S_ISDIR(top.st_mode):
+        add("", top)
+    else:  # a folder's own times change with a rename on some file systems; what it holds says all
+        h.update(f"{top.st_ino}\n".encode())
+        for folder, dirs, files in os.walk(path):  # links to folders come in dirs and are not walked
+            dirs.sort()
+            for name in sorted(dirs + files):
+                full = os.path.join(folder, name)
+                try:
+                    add(os.path.relpath(full, path), os.lstat(full))
+                except OSError:
+                    add(os.path.relpath(full, path), top)  # gone while walking: cannot match a record
+    return {"ino": top.st_ino, "tree": h.hexdigest()}
+
+
+def _record(path: Path, stage: str, fingerprint: dict) -> None:
+    record = record_path(path)
+    state = record.parent.parent.parent
+    # typ's state folder is typ's: a planted link or file there (an archive shipping a .typ/) is named, never followed
+    for q in (state, state / "written", record.parent):
+        if q.is_symlink() or (q.exists() and not q.is_dir()):
+            raise TypError(record, f"{STATE_DIR}/ (typ's records of what it wrote)", "a folder typ made, not a link "
+                           "or a file", f"{q} is {'a link to ' + os.readlink(q) if q.is_symlink() else 'a file'}")
+    record.parent.mkdir(parents=True, exist_ok=True)
+    write_json(record, {"stage": stage, **fingerprint})
+
+
+def written_by(path: str | os.PathLike, stage: str) -> bool:
+    """Whether ``path`` (a folder or a file, not a link) is exactly what ``stage`` put there: its
+    record (:func:`record_path`) names ``stage`` and its inode and tree fingerprint are the ones typ
+    recorded. A manifest inside a folder proves nothing: a copy, an archive, or a note a user added
+    changes the fingerprint."""
+    path = Path(path)
+    record = record_path(path)
+    try:
+        info = os.lstat(record)
+    except OSError:
         return False
-    found = read_json_or_none(manifest)
-    if not isinstance(found, dict):
+    if not stat.S_ISREG(info.st_mode) or info.st_size > _RECORD_MAX_BYTES:
         return False
-    if "stage" in found:
-        return found["stage"] == stage
-    return isinstance(found.get("key"), str) and isinstance(found.get("counts"), dict)
+    found = read_json_or_none(record)
+    if not isinstance(found, dict) or found.get("stage") != stage:
+        return False
+    now = _fingerprint(path)
+    return now is not None and {k: found.get(k) for k in now} == now
+
+
+def remove_written(path: str | os.PathLike, stage: str) -> bool:
+    """Delete ``path`` and its record when ``stage`` wrote it (:func:`written_by`); returns whether it did.
+    Anything else is left as it is."""
+    path = Path(path)
+    if not written_by(path, stage):
+        return False
+    shutil.rmtree(path) if path.is_dir() else path.unlink()
+    forget(path)
+    return True
+
+
+def forget(path: str | os.PathLike) -> None:
+    """Drop typ's record of ``path``, and the record folders that leaves empty."""
+    record = record_path(path)
+    record.unlink(missing_ok=True)
+    for folder in (record.parent, record.parent.parent, record.parent.parent.parent):
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (other records, a lock) or not there
+            return
+
+
+def no_link_below(top: str | os.PathLike, path: str | os.PathLike, *, where: str | os.PathLike, field: str) -> None:
+    """Raise TypError naming ``where`` and ``field`` when a folder between ``top`` (excluded: it may be a
+    link the user made) and ``path`` (included) is a link, or ``path`` is not below ``top``: a write
+    there would leave the output folder ``top`` through the link."""
+    top, path = Path(os.path.abspath(top)), Path(os.path.abspath(path))
+    if path != top and top not in path.parents:
+        raise TypError(where, field, f"a path inside the output folder {top}", str(path))
+    for p in (path, *path.parents):
+        if p == top:
+            return
+        if os.path.islink(p):
+            raise TypError(where, field, f"a path that stays inside the output folder {top}: typ never writes "
+                           "through a link", f"{p} is a link to {os.readlink(p)}")
+
+
+def _no_link_in_the_making(final: Path) -> None:
+    """A file written into a folder typ is building (a temporary of :func:`atomic_path`) must land in
+    that folder: no link between them (a copied scenario's agent folder linked to a dataset elsewhere
+    would let the write replace the dataset's file)."""
+    for p in final.parents:
+        if is_temporary(p):
+            no_link_below(p, final.parent, where=final, field="folder")
+            return
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, *, stage: str | None = None) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, *, stage: str | None = None,
+                inside: str | os.PathLike | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.
 
-    Works for files and folders. A folder made at the temporary path must hold the manifest of
-    ``stage`` (:func:`write_manifest`), and it replaces an existing ``path`` (swapped out, then
-    removed) only when that is a folder ``stage`` wrote (:func:`written_by`); anything else there
-    raises TypError and is left as it is. A file never replaces a folder. The temporary names
-    fit :data:`NAME_MAX` whatever the length of ``path``'s name; a name that does not fit itself,
-    or a file where a parent folder goes, raises TypError naming the path.
+    Works for files and folders. With ``stage``, what is renamed into place is recorded as that
+    stage's (:func:`written_by`), and it replaces an existing ``path`` only when that is what the
+    stage wrote; anything else there raises TypError and is left as it is. A folder made at the
+    temporary path must then hold the manifest of ``stage`` (:func:`write_manifest`). A file never
+    replaces a folder. With ``inside`` (the stage's output folder), no folder between it and
+    ``path`` may be a link (:func:`no_link_below`); and a file written inside a folder typ is building
+    never passes a link. The temporary names fit :data:`NAME_MAX` whatever the length of ``path``'s
+    name; a name that does not fit itself, or a file where a parent folder goes, raises TypError.
     """
     final = Path(path)
     if len(os.fsencode(final.name)) > NAME_MAX:
         raise TypError(final.parent, "file name", f"at most {NAME_MAX} bytes",
                        f"{len(os.fsencode(final.name))} bytes: {final.name[:60]}...")
     check_folder(final.parent, where=final, field="folder")
+    if inside is not None:
+        no_link_below(inside, final, where=final, field="output")
+    _no_link_in_the_making(final)
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -133,6 +251,7 @@ def atomic_path(path: str | os.PathLike, *, stage: str | None = None) -> Iterato
             if final.exists():
                 old = final.with_name(f"{TMP_PREFIX}old-{short}.{os.getpid()}")
                 os.replace(final, old)
+            _record(final, stage, _fingerprint(tmp))  # a rename keeps the inode and everything below it
             os.replace(tmp, final)
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
@@ -141,6 +260,9 @@ def atomic_path(path: str | os.PathLike, *, stage: str | None = None) -> Iterato
                 raise TypError(final, "output", "a path free for a file", "a folder")
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
+            if stage is not None:
+                _check_replaceable(final, None, stage)
+                _record(final, stage, _fingerprint(tmp))
             os.replace(tmp, final)
     finally:
         if tmp.is_dir():
@@ -149,52 +271,96 @@ def atomic_path(path: str | os.PathLike, *, stage: str | None = None) -> Iterato
             tmp.unlink()
 
 
-def _check_replaceable(final: Path, made: Path, stage: str | None) -> None:
-    """Refuse to put folder ``made`` at ``final`` unless it names its stage and ``final`` is free or
-    that stage's folder."""
-    if stage is None or not written_by(made, stage):
-        raise ValueError(f"{final}: a folder typ writes holds the manifest of its stage (typ.io.write_manifest)")
+def _check_replaceable(final: Path, made: Path | None, stage: str | None) -> None:
+    """Refuse to put ``made`` (a folder holding its stage's manifest; None: a file) at ``final`` unless
+    ``final`` is free or is what that stage wrote."""
+    if stage is None or (made is not None and (read_json_or_none(made / SCENARIO_MANIFEST) or {}).get("stage") != stage):
+        raise ValueError(f"{final}: a folder typ writes names its stage and holds its manifest (typ.io.write_manifest)")
     if (final.exists() or final.is_symlink()) and not written_by(final, stage):
-        raise TypError(final, "output folder", f"a path that is free or holds a folder typ's {stage} wrote "
-                       f"(its {SCENARIO_MANIFEST}): typ replaces nothing it did not write; move it away",
-                       "a folder typ did not write" if final.is_dir() else "a file")
+        what = "a link" if final.is_symlink() else "a folder" if final.is_dir() else "a file"
+        raise TypError(final, "output", f"a path that is free or holds what typ's {stage} wrote there (its record "
+                       f"in {record_path(final).parent.parent} matches it): typ replaces nothing it did not write, "
+                       "and a copy, an archive or a file added since is not what it wrote; move it away",
+                       f"{what} typ did not write, or changed since")
 
 
 class OutputBusy(TypError):
-    """Another run of the stage holds the lock on the same output (:func:`output_lock`)."""
+    """Another run holds the lock on the same output folder (:func:`output_lock`)."""
+
+
+#: what a lock file holds: its holder, written by typ (anything else there is not typ's lock file)
+_LOCK_TEXT = re.compile(rb"(pid [0-9]+ \([^\n]*\): [^\n]*\n)?")
+_LOCK_MAX_BYTES = 4096
+
+
+def lock_path(out: str | os.PathLike) -> Path:
+    """The lock file of output folder ``out``: beside its real path (``<parent>/.typ/<name>.lock``), so
+    every root and every name that reaches the folder (relative, with ``..``, through a link) shares it."""
+    real = Path(os.path.realpath(out))
+    return real.parent / STATE_DIR / (fit_name(real.name, NAME_MAX - 5) + ".lock")
 
 
 @contextlib.contextmanager
-def output_lock(root: str | os.PathLike, stage: str, out: str | os.PathLike) -> Iterator[None]:
-    """Hold ``stage``'s lock on its output folder ``out`` for the block; a second run, in this
-    process or another, is refused at once with :class:`OutputBusy` naming the holder's pid.
+def output_lock(stage: str, out: str | os.PathLike) -> Iterator[None]:
+    """Hold the lock on output folder ``out`` for ``stage``'s block; a second run, in this process or
+    another, is refused at once with :class:`OutputBusy` naming the holder's pid.
 
-    The lock is an flock on ``<root>/.typ/locks/<stage>-<digest of out>.lock``: the kernel drops
-    it when its holder ends, by SIGKILL too, so a crash never leaves the output locked. The file
-    holds the holder's pid and command, for the message; it is not deleted (a lock file removed
+    The lock is an flock on :func:`lock_path`: the kernel drops it when its holder ends, by SIGKILL
+    too, so a crash never leaves the output locked. It is opened without following a link, and it
+    must be a regular file with one name that typ wrote (empty, or its holder line): a link, a hard
+    link to a user's file, a folder, a FIFO or a user's file there is named, never written. It holds
+    the holder's pid, stage and command, for the message; it is not deleted (a lock file removed
     while another process waits on it would let a third one in).
     """
-    target = Path(out).resolve()
-    locks = Path(root) / ".typ" / "locks"
-    locks.mkdir(parents=True, exist_ok=True)
-    path = locks / f"{stage}-{hashlib.sha256(str(target).encode()).hexdigest()[:16]}.lock"
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    path = lock_path(out)
+    fd = _open_lock(path)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
-            raise OutputBusy(target, "lock", f"no other run of stage {stage} writing this output: wait for it to "
-                             f"end, or stop it", f"held by {holder} ({path})") from None
+            raise OutputBusy(Path(os.path.realpath(out)), "lock", f"no other run writing this output ({stage}): "
+                             "wait for it to end, or stop it", f"held by {holder} ({path})") from None
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)[:400]}\n".encode(), 0)
+        holder = f"pid {os.getpid()} ({stage}): {' '.join(sys.argv)[:400]}".replace("\n", " ")
+        os.pwrite(fd, holder.encode(errors="replace") + b"\n", 0)
         yield
     finally:
         os.close(fd)
 
 
-def write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
+def _open_lock(path: Path) -> int:
+    """A descriptor of lock file ``path``, made by typ or checked to be typ's; else TypError naming it."""
+    expected = "a lock file typ made (a regular file with one name, holding its holder's pid)"
+    check_folder(path.parent, where=path, field="lock folder")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        folder = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as exc:
+        got = f"{path.parent} is a link" if os.path.islink(path.parent) else f"{path.parent}: {exc.strerror}"
+        raise TypError(path, "lock folder", "a folder typ can make, not a link", got) from None
+    try:
+        fd = os.open(path.name, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644,
+                     dir_fd=folder)
+    except OSError as exc:
+        got = "a link" if os.path.islink(path) else "a folder" if os.path.isdir(path) else exc.strerror
+        raise TypError(path, "lock", expected, got) from None
+    finally:
+        os.close(folder)
+    info = os.fstat(fd)
+    problem = ("not a regular file" if not stat.S_ISREG(info.st_mode)
+               else f"a file with {info.st_nlink} names (a hard link)" if info.st_nlink != 1
+               else "a file typ did not write" if info.st_size > _LOCK_MAX_BYTES
+               or _LOCK_TEXT.fullmatch(os.pread(fd, _LOCK_MAX_BYTES, 0)) is None else None)
+    if problem:
+        os.close(fd)
+        raise TypError(path, "lock", expected, problem)
+    return fd
+
+
+def write_bytes(path: str | os.PathLike, data: bytes, *, stage: str | None = None) -> None:
+    """``data`` at ``path``, atomically; with ``stage``, recorded as that stage's (:func:`atomic_path`)."""
+    with atomic_path(path, stage=stage) as tmp:
         tmp.write_bytes(data)
 
 

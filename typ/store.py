@@ -157,14 +157,16 @@ def _batch(scene: str, rows: list) -> pa.RecordBatch:
 
 
 def write_scene_voxels(path: str | os.PathLike, records: Mapping[tuple[str, str], Record] | Iterable[tuple[tuple[str, str], Record]],
-                       *, grid: Grid, input_hash: str) -> Path:
+                       *, grid: Grid, input_hash: str, stage: str | None = None,
+                       inside: str | os.PathLike | None = None) -> Path:
     """Write one scene's voxels to ``path`` (``<scene>.parquet``, see :func:`scene_path`) atomically.
 
     records: ``{(agent_id, timestamp): (occupancy (H, W, C) bool, box_map (H, W, 1) bool)}``, or
     an iterable of such ``(key, value)`` pairs, consumed one row group at a time; all arrays
     on ``grid`` in that agent's sensor frame. input_hash: content hash of the inputs
     (e.g. :func:`typ.io.hash_files`). If anything fails, no file appears at ``path`` and a
-    file already there is left as it was. Returns ``path``.
+    file already there is left as it was. ``stage`` and ``inside``: as :func:`typ.io.atomic_path`
+    (the file is recorded as the stage's, and replaces only what the stage wrote). Returns ``path``.
     """
     path = Path(path)
     if not path.name.endswith(".parquet") or path.name.startswith("."):
@@ -180,7 +182,7 @@ def write_scene_voxels(path: str | os.PathLike, records: Mapping[tuple[str, str]
     schema = _SCHEMA.with_metadata({METADATA_KEY: json.dumps(meta, sort_keys=True).encode()})
     items = records.items() if isinstance(records, Mapping) else records
     seen: set[tuple[str, str]] = set()
-    with atomic_path(path) as tmp, pq.ParquetWriter(tmp, schema, **_WRITE_OPTIONS) as writer:
+    with atomic_path(path, stage=stage, inside=inside) as tmp, pq.ParquetWriter(tmp, schema, **_WRITE_OPTIONS) as writer:
         rows: list = []
         for key, value in items:
             row = _check_record(path, key, value, grid)
@@ -234,16 +236,6 @@ def stored_input_hash(path: str | os.PathLike) -> str | None:
     if not path.exists():
         return None
     return _metadata(path, _read_schema(path))[1]
-
-
-def written_by_store(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a scene file typ.store wrote (its footer names the format, of any
-    version): what the voxelize stage may delete."""
-    try:
-        raw = (_read_schema(Path(path)).metadata or {}).get(METADATA_KEY)
-        return raw is not None and json.loads(raw).get("format") == FORMAT
-    except (TypError, ValueError, UnicodeDecodeError, AttributeError):
-        return False
 
 
 def stored_grid(path: str | os.PathLike) -> Grid:

@@ -328,11 +328,13 @@ def figure_array(fig: Figure) -> np.ndarray:
     return np.asarray(canvas.buffer_rgba()).copy()
 
 
-def save_png(fig: Figure, path: str | Path) -> Path:
+def save_png(fig: Figure, path: str | Path, *, stage: str | None = None) -> Path:
     """Write ``fig`` as a PNG at its own size and dpi (no cropping, so pixels match
-    :func:`figure_array`), atomically; the same figure gives the same bytes."""
+    :func:`figure_array`), atomically; the same figure gives the same bytes. With ``stage`` (a
+    command writing into a folder of the user's), it replaces only a PNG that command wrote
+    (:func:`typ.io.atomic_path`)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, stage=stage) as tmp:
         with open(tmp, "wb") as fh:
             fig.savefig(fh, format="png", dpi=fig.dpi, metadata={"Software": None})
     return path

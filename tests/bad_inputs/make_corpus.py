@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 if __package__ in (None, ""):  # run as a script: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[1])]
 
 from typ import geometry
 from typ.formats.binfile import read_bin
@@ -37,7 +37,8 @@ from typ.store import read_scene_voxels, scene_path, stored_grid, stored_input_h
 from typ.voxel import Grid, box_map, voxelize
 
 KINDS = ("truncated", "misaligned", "wrong dtype", "nan/inf", "empty", "huge", "missing keys", "wrong units",
-         "corrupt crc", "unreadable", "unknown", "bomb", "not a regular file", "deep", "overflow")
+         "corrupt crc", "unreadable", "unknown", "bomb", "not a regular file", "deep", "overflow",
+         "link", "forged")
 
 #: the grid of every store case: small enough to write in a millisecond
 GRID = Grid((-8.0, 8.0), (-8.0, 8.0), (-2.0, 2.0), (16, 16, 4))
@@ -66,7 +67,7 @@ class Probe:
 
 @dataclass(frozen=True)
 class Case:
-    reader: str        # binfile, pcd, opv2v, kitti, nuscenes, waymo, store, voxel, params, cli, artifact, show
+    reader: str        # binfile, pcd, opv2v, kitti, nuscenes, waymo, store, voxel, params, cli, artifact, show, io
     name: str
     kind: str          # one of KINDS
     build: Callable[[Path], Probe] = field(repr=False, compare=False)
@@ -1075,21 +1076,21 @@ def _(d):
 @case("params", "postprocess_candidates_in_percent", "wrong units")
 def _(d):
     probe = load_params(d, {"stage1": {"postprocess": {"candidates": [10, 20, 30]}}})
-    probe.says += ("stage1.postprocess.candidates", "probabilities in (0, 1)")
+    probe.says += ("stage1.postprocess.candidates[0]", "a probability in (0, 1)")
     return probe
 
 
 @case("params", "negative_scenario_count", "wrong units")
 def _(d):
     probe = load_params(d, {"simulate": {"scenarios": {"target": {"train": -1}}}})
-    probe.says += ("simulate.scenarios.target.train", "a count >= 0")
+    probe.says += ("simulate.scenarios.target.train", "an integer in [0, 100000]")
     return probe
 
 
 @case("params", "huge_sample_steps", "huge")
 def _(d):
     probe = load_params(d, {"stage1": {"sample_steps": 10**9}})
-    probe.says += ("stage1.sample_steps", "an integer in [1, train_timesteps=1000]")
+    probe.says += ("stage1.sample_steps", "an integer in [1, 10000]")
     return probe
 
 
@@ -1652,7 +1653,7 @@ def _(d):
     doc = json.loads(path.read_text())
     doc["config"]["block_out_channels"] = [100_000, 100_000]  # 360 GB of convolution weights before
     path.write_text(json.dumps(doc))
-    return Probe(says=(str(d / "x" / "model.safetensors"), "weights", "vqvae stage"), call=lambda: load_model(d / "x"))
+    return Probe(says=(str(path), "config.block_out_channels", "vqvae stage"), call=lambda: load_model(d / "x"))
 
 
 @case("artifact", "vqvae_config_zero_groups", "wrong units", needs="torch")
@@ -1725,10 +1726,18 @@ def _(d):
     return probe
 
 
+# ---------------------------------------------------------------- the cases kept in modules of their own
+
+# each module registers its cases with :func:`case` when imported (after every helper above exists)
+from bad_inputs import cases_bounds, cases_ownership, cases_paths, cases_sequences  # noqa: E402,F401
+
+
 # ---------------------------------------------------------------- as a script
 
 
 def main(argv: list[str]) -> int:
+    from bad_inputs.make_corpus import CASES  # as a script this module is __main__: the cases register there
+
     if len(argv) != 1:
         print(__doc__.strip().splitlines()[-1].strip(), file=sys.stderr)
         return 2

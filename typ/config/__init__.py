@@ -4,7 +4,10 @@
 the defaults from ``typ/profiles.yaml`` (``tiny``: minutes on 2 CPU cores; ``paper``: TYP §4
 scale); each block in ``params.yaml`` overrides them key by key. An unknown key, a wrong
 type or an impossible value fails at load time with the dotted field name and what was
-expected, e.g. ``params.yaml: voxelize.grid.shape: expected 3 positive integers``.
+expected, e.g. ``params.yaml: voxelize.grid.shape: expected a list of 3 ints``. Every number
+has a bound declared beside its field (:class:`Bound`: what a value past it would cost in memory
+or time), and every list a length (:class:`Length`), checked as the config is built, so
+``load_config`` and ``typ check`` refuse a size before any work starts.
 
 The blocks live by job: :mod:`typ.config.data` (simulate, voxelize), :mod:`typ.config.generation`
 (vqvae … generate), :mod:`typ.config.detection` (fusion, ssc), :mod:`typ.config.ddpm`,
@@ -21,23 +24,29 @@ from pathlib import Path
 
 import yaml
 
-from typ.config.base import (DOMAINS, MAX_PARAMS_BYTES, PROFILES, PROFILES_FILE, SIMULATE, WHOLE, Sampler, Schedule,
-                             _build, _check_methods, _deep_merge, _fits, _join, _positive, _positive_fields, _tname,
-                             as_dict, build_typed, flatten)  # noqa: F401
-from typ.config.data import (AZIMUTH_STEP_DEG, DomainSimulation, ElevationRule, GridConfig, MAX_AGENTS,
-                             MAX_COMM_RANGE, MAX_DT, MAX_FRAMES, SINGLE_AGENT_FORMATS, SOURCE_FORMATS, SensorConfig,
-                             SimulateConfig, SourceConfig, SourceFormat, VoxelizeConfig, check_simulation)  # noqa: F401
+from typ.config.base import (DOMAINS, LIMITS, MAX_ADAPTER_SCALE, MAX_NOISE_STD, MAX_PARAMS_BYTES, MAX_TIMESTEPS,
+                             PROFILES, PROFILES_FILE, SIMULATE, WHOLE, Bound, Length, Product, Sampler, Schedule,
+                             _build, _check_methods, _deep_merge, _fits, _join, _tname, as_dict, build_typed, flatten,
+                             limits, type_hints, unannotated)  # noqa: F401
+from typ.config.data import (AZIMUTH_STEP_DEG, DomainSimulation, ElevationRule, GridConfig, MAX_AGENTS, MAX_BEAMS,
+                             MAX_COMM_RANGE, MAX_DT, MAX_FRAMES, MAX_SCENARIOS, SINGLE_AGENT_FORMATS, SOURCE_FORMATS,
+                             SensorConfig, SimulateConfig, SourceConfig, SourceFormat, VoxelizeConfig,
+                             check_simulation)  # noqa: F401
 from typ.config.generation import (COMPOSE, AdaptConfig, AutoencoderConfig, CastConfig, GenerateConfig, GenerateSet,
                                    PostprocessConfig, SelftrainConfig, Stage1Config, Stage2Config, UNetConfig,
                                    VQVAEStageConfig)  # noqa: F401
-from typ.config.detection import (AugmentConfig, DetectorConfig, FUSION_METHODS, PRETRAIN_SOURCES, FusionConfig,
-                                  RobustnessConfig, SSC_METHODS, SscConfig, SscNetworkConfig, SscNoisyConfig,
-                                  V2XViTConfig)  # noqa: F401
+from typ.config.detection import (AugmentConfig, DetectorConfig, FUSION_METHODS, MAX_BEV_CELLS, MAX_PILLARS,
+                                  PRETRAIN_SOURCES, FusionConfig, RobustnessConfig, SSC_METHODS, SscConfig,
+                                  SscNetworkConfig, SscNoisyConfig, V2XViTConfig)  # noqa: F401
 from typ.config.ddpm import (DdpmBevConfig, DdpmConfig, DdpmRangeConfig, DdpmRunConfig, FeatureNetConfig,
                              LatentRouteConfig, PixelUNetConfig, _check_samplers)  # noqa: F401
-from typ.config.run import (Config, EvaluateConfig, RuntimeConfig, ServeConfig, TrackingConfig)  # noqa: F401
+from typ.config.run import (Config, EvaluateConfig, NovelViewConfig, NovelViewSequence, RuntimeConfig, ServeConfig,
+                             TrackingConfig)  # noqa: F401
 from typ.errors import TypError
 from typ.inputs import load_yaml
+
+
+_YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 def load_config(path: str | Path = "params.yaml", *, overrides: dict | None = None) -> Config:
@@ -49,7 +58,8 @@ def read_params(path: str | Path) -> dict:
     """The mapping in a params.yaml, as written (before the profile's defaults are merged in).
 
     A missing, unreadable, oversized, malformed or alias-bombed file raises TypError."""
-    raw = load_yaml(path, "UTF-8 params.yaml", max_bytes=MAX_PARAMS_BYTES,
+    # libyaml's parser: PyYAML's own takes seconds on a params.yaml of a megabyte
+    raw = load_yaml(path, "UTF-8 params.yaml", max_bytes=MAX_PARAMS_BYTES, loader=_YAML_LOADER,
                     missing="a params.yaml in the project root (run typ from there)") or {}
     if not isinstance(raw, dict):
         raise TypError(path, "<top level>", "a mapping of stage blocks", type(raw).__name__)
@@ -90,4 +100,4 @@ def profile_defaults(profile: str) -> dict:
 def _profiles() -> dict:
     # parsed once per process (a stage loads its params three times: CLI, stage, flow), with
     # libyaml when PyYAML has it: the pure-Python parser takes a tenth of a second on this file
-    return yaml.load(PROFILES_FILE.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    return yaml.load(PROFILES_FILE.read_text(), Loader=_YAML_LOADER)

@@ -1,14 +1,17 @@
-"""What every config block shares: the profile names and limits, the value checks the blocks' ``check``
-methods call, and the typed build of a mapping into frozen dataclasses (:func:`build_typed`)."""
+"""What every config block shares: the profile names and limits, the bounds declared beside the fields
+(:class:`Bound`, :class:`Length`, :class:`Product`), the value checks the blocks' ``check`` methods call,
+and the typed build of a mapping into frozen dataclasses (:func:`build_typed`)."""
 from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 import types
 import typing
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from models.registry import SAMPLERS
 from models.schedules import SCHEDULES
@@ -27,9 +30,103 @@ Schedule = Literal[tuple(SCHEDULES)]
 Sampler = Literal[tuple(SAMPLERS)]
 
 
-def _positive(where: str, name: str, value) -> None:
-    if not value > 0:
-        raise TypError(where, name, "a value > 0", value)
+def _number(value) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The interval a number must lie in, declared beside its field and checked when the config is built:
+    ``epochs: Annotated[int, Bound(1, 10_000, "why")]``. ``why``: what a value past it costs (memory,
+    time) or what fixes the interval; ``low_open`` / ``high_open`` leave that end out (a learning rate
+    > 0); ``what``: what the number is, for the message ("a probability"; default an integer / a number).
+    The same as pydantic's ``Field(ge=low, le=high)`` (``gt`` / ``lt`` for an open end)."""
+
+    low: float
+    high: float
+    why: str
+    low_open: bool = False
+    high_open: bool = False
+    what: str = ""
+
+    def admits(self, value) -> bool:
+        above = self.low < value if self.low_open else self.low <= value
+        below = value < self.high if self.high_open else value <= self.high
+        return above and below
+
+    def interval(self) -> str:
+        return (f"{'(' if self.low_open else '['}{_number(self.low)}, "
+                f"{_number(self.high)}{')' if self.high_open else ']'}")
+
+    def check(self, value, where: str, name: str, noun: str) -> None:
+        if not self.admits(value):
+            raise TypError(where, name, f"{self.what or noun} in {self.interval()} ({self.why})", value)
+
+
+@dataclass(frozen=True)
+class Length:
+    """How many items a list (or mapping) may hold: ``Annotated[tuple[Width, ...], Length(1, 8, "why")]``;
+    pydantic's ``Field(min_length=low, max_length=high)``."""
+
+    low: int
+    high: int
+    why: str
+
+    def check(self, value, where: str, name: str, noun: str) -> None:
+        if not self.low <= len(value) <= self.high:
+            raise TypError(where, name, f"{self.low} to {self.high} {noun} ({self.why})", len(value))
+
+
+@dataclass(frozen=True)
+class Product:
+    """The most the numbers of a fixed-length list may multiply to (a grid's H x W x C voxels)."""
+
+    high: int
+    why: str
+
+    def check(self, value, where: str, name: str, noun: str) -> None:
+        if math.prod(value) > self.high:
+            raise TypError(where, name, f"{noun} whose product is at most {self.high} ({self.why})", list(value))
+
+
+#: the marks a field's ``Annotated`` type may carry, checked by :func:`build_typed`
+LIMITS = (Bound, Length, Product)
+
+# Families of fields that share one bound, each declared once here.
+Seed = Annotated[int, Bound(0, 2**31 - 1, "a numpy seed, in [0, 2**32) with room for the seed + k of replicas "
+                              "and batches")]
+Epochs = Annotated[int, Bound(1, 10_000, "passes over the training set: the paper's longest run is 200")]
+Steps = Annotated[int, Bound(1, 2_000_000, "optimiser steps: the paper profile's longest run is 200,000")]
+BatchSize = Annotated[int, Bound(1, 1024, "samples held in memory at once: 1024 paper-scale grids "
+                                   "(512 x 512 x 20 float32) are 21 GB")]
+Workers = Annotated[int, Bound(1, 256, "processes, one each: past a large machine's cores they only cost "
+                                  "memory and start-up")]
+LearningRate = Annotated[float, Bound(0, 10, "an optimiser step size: past 10 every optimiser here diverges",
+                                      low_open=True)]
+#: diffusion steps T; a saved generator's (pipelines.pipeline_typ) and a saved model's (typ.artifacts) too
+MAX_TIMESTEPS = 10_000
+#: the adapter's residuals times this at sampling: past it they drown the UNet (both params and pipeline.json)
+MAX_ADAPTER_SCALE = 1000.0
+#: the post-processing's logit noise, about 1 (both params and pipeline.json)
+MAX_NOISE_STD = 100.0
+Timesteps = Annotated[int, Bound(1, MAX_TIMESTEPS, "diffusion steps: the paper's T is 1000, and a sampler "
+                                    "runs the network up to T times a sample")]
+Decay = Annotated[float, Bound(0, 1, "an EMA decay (0: no averaging)", high_open=True)]
+Probability = Annotated[float, Bound(0, 1, "a threshold on a probability", low_open=True, high_open=True,
+                                     what="a probability")]
+Dropout = Annotated[float, Bound(0, 1, "a share of units dropped", high_open=True, what="a probability")]
+#: each replicate draws an index per row: 20,000 x 1,000 scenes x 8 B = 160 MB
+Replicates = Annotated[int, Bound(1, 20_000, "bootstrap replicates: the paper's tables use 1000, and each "
+                                     "resamples every row")]
+TrainingSeeds = Annotated[int, Bound(1, 32, "trainings of every network, one per seed: the paper's tables use 3")]
+Width = Annotated[int, Bound(1, 1024, "channels of a layer: 4x the paper's widest; a 3x3 conv of 1024 -> 1024 "
+                                 "is 38 MB of weights, 10x wider is 3.8 GB per layer")]
+LayersPerBlock = Annotated[int, Bound(1, 16, "layers per resolution level: the paper's networks use 1 or 2")]
+NormGroups = Annotated[int, Bound(1, 1024, "GroupNorm groups, which divide every width")]
+LEVELS = Length(1, 8, "resolution levels: each halves the grid, 8 take 512 cells to 4")
+Distance = Annotated[float, Bound(0, 1000, "metres: 1 km is past every LiDAR's range")]
+Coordinate = Annotated[float, Bound(-1000, 1000, "metres from the sensor: 1 km is past every LiDAR's range")]
+Views = Annotated[int, Bound(1, 10_000, "views sampled or scored, each a diffusion sample of seconds")]
 
 
 def _check_methods(where: str, name: str, methods, allowed: tuple[str, ...], *, allow_empty: bool = False) -> None:
@@ -40,12 +137,6 @@ def _check_methods(where: str, name: str, methods, allowed: tuple[str, ...], *, 
             raise TypError(where, f"{name}[{i}]", f"one of {list(allowed)}", method)
     if (not methods and not allow_empty) or len(set(methods)) != len(methods):
         raise TypError(where, name, f"each of {'/'.join(allowed)} at most once", list(methods))
-
-
-def _positive_fields(block, where: str, name: str, *keys: str) -> None:
-    """Every ``block.<key>`` must be > 0; the error names ``<name>.<key>``."""
-    for key in keys:
-        _positive(where, f"{name}.{key}", getattr(block, key))
 
 
 #: mappings that params.yaml replaces whole instead of key by key: ``simulate.domains: {}``
@@ -66,12 +157,25 @@ def _deep_merge(base: dict, over: dict, *, where: str = "", prefix: str = "", wh
 
 
 def _build(tp, value, where: str, name: str):
-    """Convert ``value`` to type ``tp`` or raise TypError naming ``name``."""
+    """Convert ``value`` to type ``tp`` or raise TypError naming ``name``; the limits an ``Annotated``
+    type carries (:data:`LIMITS`) are checked on the converted value."""
     origin = typing.get_origin(tp)
+    if origin is Annotated:
+        inner, *marks = typing.get_args(tp)
+        # a list's length first: a list of a million items is refused before they are built
+        if isinstance(value, (list, tuple, dict)):
+            for mark in marks:
+                if isinstance(mark, Length):
+                    mark.check(value, where, name, _noun(inner, mark))
+        built = _build(inner, value, where, name)
+        for mark in marks:
+            if isinstance(mark, (Bound, Product)):
+                mark.check(built, where, name, _noun(inner, mark))
+        return built
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise TypError(where, name or "<top level>", f"a mapping for {tp.__name__}", value)
-        hints = typing.get_type_hints(tp)
+        hints = type_hints(tp)
         fields = {f.name: f for f in dataclasses.fields(tp) if f.init and f.name != "source"}
         unknown = sorted(set(value) - set(fields))
         if unknown:
@@ -151,9 +255,38 @@ def _build(tp, value, where: str, name: str):
     raise TypeError(f"config type {tp!r} for {name} is not supported")
 
 
+@functools.lru_cache(maxsize=None)
+def type_hints(tp) -> dict:
+    """The field types of config class ``tp``, bounds (``Annotated``) kept; evaluated once per class, as the
+    string annotations cost most of a config's build otherwise."""
+    return typing.get_type_hints(tp, include_extras=True)
+
+
+def _noun(tp, mark) -> str:
+    """What a limit's message calls the value: a number's kind, a list's items."""
+    if isinstance(mark, Product):
+        return f"{len(typing.get_args(tp))} numbers"
+    if isinstance(mark, Length):
+        return "entries" if typing.get_origin(tp) is dict else "items"
+    return "an integer" if tp is int else "a number"
+
+
+def unannotated(tp):
+    """``tp`` without its ``Annotated`` wrapper (the type a value is built as)."""
+    return typing.get_args(tp)[0] if typing.get_origin(tp) is Annotated else tp
+
+
+def limits(tp) -> tuple:
+    """The limits (:data:`LIMITS`) an ``Annotated`` type carries; () for any other type."""
+    if typing.get_origin(tp) is not Annotated:
+        return ()
+    return tuple(m for m in typing.get_args(tp)[1:] if isinstance(m, LIMITS))
+
+
 def _fits(tp, value) -> bool:
     """Whether ``value`` has the shape of ``tp`` (a mapping for a dataclass or dict, a list for a
     list or tuple), so that a union's error can come from the one alternative it could be."""
+    tp = unannotated(tp)
     origin = typing.get_origin(tp)
     if dataclasses.is_dataclass(tp) or origin is dict:
         return isinstance(value, dict)
@@ -173,6 +306,7 @@ def _join(prefix: str, key: str) -> str:
 
 
 def _tname(tp) -> str:
+    tp = unannotated(tp)
     return getattr(tp, "__name__", str(tp))
 
 

@@ -2,11 +2,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
-from typ.config.base import Sampler, Schedule, _positive, _positive_fields
+from typ.config.base import (LEVELS, BatchSize, Bound, Dropout, LayersPerBlock, LearningRate, Length, NormGroups,
+                             Sampler, Schedule, Seed, Steps, Timesteps, Views, Width)
 from typ.config.data import GridConfig
 from typ.errors import TypError
+
+#: space-to-depth blocks the U-Net folds into channels
+Patch = tuple[Annotated[int, Bound(1, 64, "pixels of a space-to-depth block along one side")],
+              Annotated[int, Bound(1, 64, "pixels of a space-to-depth block along one side")]]
+SEEDS = Length(0, 32, "training seeds, each training every model again: the paper's 3")
+Samplers = Annotated[tuple[tuple[Sampler, Timesteps], ...], Length(0, 16, "[sampler, steps] rows, each sampling "
+                                                                   "every evaluation set again")]
 
 
 def _check_samplers(where: str, name: str, samplers, train_timesteps: int) -> None:
@@ -20,9 +28,9 @@ def _check_samplers(where: str, name: str, samplers, train_timesteps: int) -> No
 class DdpmRangeConfig:
     """The equirectangular range image: the sensor's beams (rows) x ``azimuth_bins`` columns."""
 
-    azimuth_bins: int
+    azimuth_bins: Annotated[int, Bound(1, 8192, "columns of a range image, each a ray per beam: the paper's 1024")]
     #: space-to-depth block the U-Net folds into channels ([1, 1]: plain pixels)
-    patch: tuple[int, int]
+    patch: Patch
     #: depth -> pixel: ``linear`` (2·d/max_range - 1) or ``log`` (R2DM's log2(d+1)/log2(max+1)),
     #: see typ.projection.to_unit
     depth: Literal["linear", "log"]
@@ -33,29 +41,27 @@ class DdpmBevConfig:
     """The BEV image: orthographic projection onto ``grid`` (shape [H, W, 1]; z range kept)."""
 
     grid: GridConfig
-    patch: tuple[int, int]
+    patch: Patch
 
 
 @dataclass(frozen=True)
 class PixelUNetConfig:
     """The lightweight pixel-space U-Net of LiDAR DDPM §IV-2."""
 
-    block_out_channels: tuple[int, ...]
-    layers_per_block: int
-    norm_num_groups: int
-    dropout: float
-    harmonics: int  #: N of the Fourier time embedding (Eq. 4)
+    block_out_channels: Annotated[tuple[Width, ...], LEVELS]
+    layers_per_block: LayersPerBlock
+    norm_num_groups: NormGroups
+    dropout: Dropout
+    #: N of the Fourier time embedding (Eq. 4)
+    harmonics: Annotated[int, Bound(1, 64, "frequencies of the time embedding: the paper's 4")]
     #: two fixed input channels with each pixel's row and column (beam elevation / azimuth, BEV x / y)
     coordinates: bool
 
     def check(self, where: str, name: str) -> None:
-        if len(self.block_out_channels) < 2 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+        if len(self.block_out_channels) < 2 or any(c % self.norm_num_groups for c in self.block_out_channels):
             raise TypError(where, f"{name}.block_out_channels",
                            f">= 2 positive widths divisible by norm_num_groups={self.norm_num_groups}",
                            list(self.block_out_channels))
-        _positive_fields(self, where, name, "layers_per_block", "norm_num_groups", "harmonics")
-        if not 0 <= self.dropout < 1:
-            raise TypError(where, f"{name}.dropout", "a probability in [0, 1)", self.dropout)
 
 
 @dataclass(frozen=True)
@@ -71,8 +77,8 @@ class DdpmRunConfig:
     representation: Literal["range", "bev"]
     schedule: Schedule
     embedding: Literal["sinusoidal", "fourier"]
-    samplers: tuple[tuple[Sampler, int], ...] = ()
-    seeds: tuple[int, ...] = ()
+    samplers: Samplers = ()
+    seeds: Annotated[tuple[Seed, ...], SEEDS] = ()
 
 
 @dataclass(frozen=True)
@@ -80,15 +86,14 @@ class FeatureNetConfig:
     """typ's FRID (range image) and FPVD (voxel grid) feature networks, trained on the
     simulator's per-point semantics."""
 
-    width: int
-    levels: int
-    steps: int
-    batch_size: int
-    lr: float
+    width: Width
+    levels: Annotated[int, Bound(1, 8, "resolution levels: each halves the image")]
+    steps: Steps
+    batch_size: BatchSize
+    lr: LearningRate
     voxel_grid: GridConfig
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "width", "levels", "steps", "batch_size", "lr")
         self.voxel_grid.check(where, f"{name}.voxel_grid")
 
 
@@ -97,8 +102,8 @@ class LatentRouteConfig:
     """TYP's latent route beside the pixel DDPM: stage 1 (P(x|y) in VQ latents) sampled on the
     same held-out views with their box maps. ``samplers: []`` leaves it out."""
 
-    samplers: tuple[tuple[Sampler, int], ...]
-    views: int
+    samplers: Samplers
+    views: Views
     stage1: str
     vqvae: str
     voxels: str
@@ -113,19 +118,21 @@ class DdpmConfig:
     range_image: DdpmRangeConfig
     bev: DdpmBevConfig
     unet: PixelUNetConfig
-    configs: tuple[DdpmRunConfig, ...]
-    samplers: tuple[tuple[Sampler, int], ...]
-    seeds: tuple[int, ...]
-    train_timesteps: int
-    steps: int
-    batch_size: int
-    lr: float
+    configs: Annotated[tuple[DdpmRunConfig, ...], Length(1, 64, "Table I rows, each trained and scored: the "
+                                                         "paper's 11")]
+    samplers: Samplers
+    seeds: Annotated[tuple[Seed, ...], SEEDS]
+    train_timesteps: Timesteps
+    steps: Steps
+    batch_size: BatchSize
+    lr: LearningRate
     #: what the U-Net outputs: ``epsilon`` (Ho et al., the paper's) or ``v_prediction`` (v = √ᾱ ε -
     #: √(1-ᾱ) x_0, Salimans & Ho); the same minimiser, weighted differently over t (tasks/ddpm.py)
     prediction: Literal["epsilon", "v_prediction"]
-    checkpoint_every: int
-    eval_samples: int
-    bootstrap: int
+    checkpoint_every: Steps
+    eval_samples: Annotated[int, Bound(2, 10_000, "samples per set, at least 2 for a covariance: the paper's 1000")]
+    bootstrap: Annotated[int, Bound(10, 20_000, "bootstrap replicates, each resampling every scan's kernel terms: "
+                                    "the paper's 1000")]
     preset: Literal["r2dm"]  #: the bootstrap resamples its per-scan kernel terms (tasks/ddpm_metrics.py)
     features: FeatureNetConfig
     latent: LatentRouteConfig
@@ -133,7 +140,7 @@ class DdpmConfig:
     ego_only: bool
     train_split: str
     test_split: str
-    seed: int
+    seed: Seed
     input: str
     reports: str
     out: str
@@ -142,12 +149,6 @@ class DdpmConfig:
         self.unet.check(where, f"{name}.unet")
         self.features.check(where, f"{name}.features")
         self.bev.grid.check(where, f"{name}.bev.grid")
-        _positive_fields(self, where, name, "train_timesteps", "steps", "batch_size", "lr", "checkpoint_every")
-        _positive(where, f"{name}.range_image.azimuth_bins", self.range_image.azimuth_bins)
-        if self.eval_samples < 2:
-            raise TypError(where, f"{name}.eval_samples", "at least 2 (a covariance needs 2 samples)", self.eval_samples)
-        if self.bootstrap < 10:
-            raise TypError(where, f"{name}.bootstrap", "at least 10 bootstrap replicates", self.bootstrap)
         if self.bev.grid.shape[2] != 1:
             raise TypError(where, f"{name}.bev.grid.shape", "[H, W, 1] (one height channel: the image)",
                            list(self.bev.grid.shape))
@@ -155,13 +156,11 @@ class DdpmConfig:
         factor = 2 ** (len(self.unet.block_out_channels) - 1)
         for key, (ph, pw), (h, w) in (("bev", self.bev.patch, self.bev.grid.shape[:2]),
                                       ("range_image", self.range_image.patch, (None, self.range_image.azimuth_bins))):
-            if ph < 1 or pw < 1 or w % pw or (w // pw) % factor or (h is not None and (h % ph or (h // ph) % factor)):
+            if w % pw or (w // pw) % factor or (h is not None and (h % ph or (h // ph) % factor)):
                 raise TypError(where, f"{name}.{key}.patch", f"a block that divides the image into a size divisible "
                                f"by 2^(levels-1) = {factor}", [ph, pw])
         if not self.seeds:
             raise TypError(where, f"{name}.seeds", "at least one training seed", [])
-        if not self.configs:
-            raise TypError(where, f"{name}.configs", "at least one {name, representation, schedule, embedding}", [])
         seen = set()
         for i, run in enumerate(self.configs):
             if (run.name, run.representation) in seen:
@@ -172,4 +171,3 @@ class DdpmConfig:
         _check_samplers(where, f"{name}.samplers", self.samplers, self.train_timesteps)
         if not self.samplers:
             raise TypError(where, f"{name}.samplers", "at least one [sampler, steps]", [])
-        _positive(where, f"{name}.latent.views", self.latent.views)

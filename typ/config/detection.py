@@ -3,36 +3,60 @@ and ``ssc`` (V2VSSC)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Annotated, Literal, get_args
 
 from models.registry import METHODS
-from typ.config.base import _check_methods, _positive_fields
+from typ.config.base import (BatchSize, Bound, Coordinate, Dropout, LearningRate, Length, Replicates, Seed, Steps,
+                             TrainingSeeds, Width, _check_methods)
+from typ.config.data import MAX_SCENARIOS, CommRange
 from typ.errors import TypError
+
+#: pillars kept per cloud: a (max_pillars, max_points_per_pillar, 10) float tensor per agent and sample
+MAX_PILLARS = 200_000
+Pillars = Annotated[int, Bound(1, MAX_PILLARS, "pillars kept per cloud, each a row of the pillar tensor: "
+                                "OpenCOOD keeps 32,000")]
+#: cells of the detector's BEV grid (x times y): its first feature map holds pillar_channels floats per cell
+#: and agent, 4 M cells x 64 channels x 4 B = 1 GB
+MAX_BEV_CELLS = 1 << 22
+Stride = Annotated[int, Bound(1, 8, "a convolution's stride")]
+BLOCKS = Length(1, 8, "backbone levels: OpenCOOD's PointPillars has 3")
+Heads = Annotated[int, Bound(1, 64, "attention heads: OpenCOOD's V2X-ViT uses at most 16")]
+HeadWidth = Annotated[int, Bound(1, 512, "channels of one attention head")]
+MetresStd = Annotated[float, Bound(0, 10, "a standard deviation in metres: V2X-ViT's noisy setting is 0.2")]
+DegreesStd = Annotated[float, Bound(0, 180, "a standard deviation in degrees: V2X-ViT's noisy setting is 0.2")]
+DelayMs = Annotated[int, Bound(0, 10_000, "milliseconds of message age: 100 frames at 10 Hz")]
+SWEEP = Length(0, 32, "points of one robustness curve, each scoring every method again")
+AnchorSide = Annotated[float, Bound(0, 50, "metres of a vehicle's length, width or height", low_open=True)]
+WINDOWS = Length(0, 8, "window branches of the multi-scale attention: OpenCOOD's has 3")
+Scale = Annotated[float, Bound(0, 10, "a scaling of the scene: OpenCOOD's is 0.95 to 1.05", low_open=True)]
+LayerNum = Annotated[int, Bound(1, 64, "convolutions per backbone level: OpenCOOD's at most 8")]
+Threshold = Annotated[float, Bound(0, 1, "a score or IoU threshold", high_open=True)]
 
 
 @dataclass(frozen=True)
 class DetectorConfig:
     """PointPillars of the fusion benchmark (``models/pointpillars.py``), one per fusion method."""
 
-    lidar_range: tuple[float, float, float, float, float, float]
-    voxel_size: float
-    max_points_per_pillar: int
-    max_pillars: int
-    pillar_channels: int
-    layer_nums: tuple[int, ...]
-    layer_strides: tuple[int, ...]
-    num_filters: tuple[int, ...]
-    upsample_strides: tuple[int, ...]
-    num_upsample_filters: tuple[int, ...]
-    anchor_size: tuple[float, float, float]
-    anchor_z: float
+    lidar_range: tuple[Coordinate, Coordinate, Coordinate, Coordinate, Coordinate, Coordinate]
+    voxel_size: Annotated[float, Bound(0.01, 10, "metres of a pillar's side: OpenCOOD's is 0.4")]
+    max_points_per_pillar: Annotated[int, Bound(1, 256, "points kept per pillar, each a column of the pillar "
+                                                "tensor: OpenCOOD keeps 32")]
+    max_pillars: Pillars
+    pillar_channels: Width
+    layer_nums: Annotated[tuple[Annotated[int, Bound(0, 64, "convolutions per backbone level: OpenCOOD's at most "
+                                                     "8")], ...], BLOCKS]
+    layer_strides: Annotated[tuple[Stride, ...], BLOCKS]
+    num_filters: Annotated[tuple[Width, ...], BLOCKS]
+    upsample_strides: Annotated[tuple[Stride, ...], BLOCKS]
+    num_upsample_filters: Annotated[tuple[Width, ...], BLOCKS]
+    anchor_size: tuple[AnchorSide, AnchorSide, AnchorSide]
+    anchor_z: Annotated[float, Bound(-10, 10, "metres from the sensor to an anchor's centre")]
 
     def check(self, where: str, name: str) -> None:
         r = self.lidar_range
         if not (r[0] < r[3] and r[1] < r[4] and r[2] < r[5]):
             raise TypError(where, f"{name}.lidar_range", "[x_min, y_min, z_min, x_max, y_max, z_max], min < max",
                            list(r))
-        _positive_fields(self, where, name, "voxel_size", "max_points_per_pillar", "max_pillars", "pillar_channels")
         lists = (self.layer_nums, self.layer_strides, self.num_filters, self.upsample_strides,
                  self.num_upsample_filters)
         if not self.layer_nums or len({len(v) for v in lists}) != 1:
@@ -46,8 +70,10 @@ class DetectorConfig:
             if abs(cells - round(cells)) > 1e-6 or round(cells) % stride:
                 raise TypError(where, f"{name}.lidar_range", f"an {axis} extent of a multiple of voxel_size x "
                                f"total backbone stride = {self.voxel_size} x {stride} m", [lo, hi])
-        if any(v <= 0 for v in self.anchor_size):
-            raise TypError(where, f"{name}.anchor_size", "3 positive sizes (l, w, h) in metres", list(self.anchor_size))
+        cells = round((r[3] - r[0]) / self.voxel_size) * round((r[4] - r[1]) / self.voxel_size)
+        if cells > MAX_BEV_CELLS:
+            raise TypError(where, f"{name}.lidar_range", f"at most {MAX_BEV_CELLS} pillar cells in x times y (each "
+                           f"holds pillar_channels floats per agent: OpenCOOD's range has 135,168)", cells)
 
 
 @dataclass(frozen=True)
@@ -56,45 +82,37 @@ class V2XViTConfig:
     ``shrink_stride``: the stride of its shrink conv (OpenCOOD's 2; with 1 and ``dim`` equal to the
     backbone's width it starts as the single-agent network, :meth:`V2XViT.warm_start`)."""
 
-    dim: int
-    depth: int
-    heads: int
-    dim_head: int
-    window_sizes: tuple[int, ...]
-    window_heads: tuple[int, ...]
-    window_dim_heads: tuple[int, ...]
-    mlp_dim: int
-    dropout: float
-    shrink_stride: int = 2
+    dim: Width
+    depth: Annotated[int, Bound(1, 16, "transformer layers: OpenCOOD's V2X-ViT has 3")]
+    heads: Heads
+    dim_head: HeadWidth
+    window_sizes: Annotated[tuple[Annotated[int, Bound(1, 64, "cells along a window's side")], ...], WINDOWS]
+    window_heads: Annotated[tuple[Heads, ...], WINDOWS]
+    window_dim_heads: Annotated[tuple[HeadWidth, ...], WINDOWS]
+    mlp_dim: Annotated[int, Bound(1, 4096, "channels of the feed-forward layer: OpenCOOD's is 256")]
+    dropout: Dropout
+    shrink_stride: Stride = 2
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "dim", "depth", "heads", "dim_head", "mlp_dim", "shrink_stride")
         if self.dim % 2 or not self.window_sizes or \
                 not len(self.window_sizes) == len(self.window_heads) == len(self.window_dim_heads):
             raise TypError(where, f"{name}.window_sizes", "an even dim and equal-length window lists",
                            [self.dim, list(self.window_sizes)])
-        if not 0 <= self.dropout < 1:
-            raise TypError(where, f"{name}.dropout", "a probability in [0, 1)", self.dropout)
 
 
 @dataclass(frozen=True)
 class RobustnessConfig:
     """V2VSSC §IV curves: AP against pose noise, delay and message compression."""
 
-    position_std: tuple[float, ...]
-    heading_std_deg: tuple[float, ...]
-    delay_ms: tuple[int, ...]
-    quantization_bits: tuple[int, ...]
+    position_std: Annotated[tuple[MetresStd, ...], SWEEP]
+    heading_std_deg: Annotated[tuple[DegreesStd, ...], SWEEP]
+    delay_ms: Annotated[tuple[DelayMs, ...], SWEEP]
+    quantization_bits: Annotated[tuple[Annotated[int, Bound(1, 16, "bits per feature of a compressed message")],
+                                       ...], SWEEP]
 
     def check(self, where: str, name: str) -> None:
-        for key in ("position_std", "heading_std_deg", "delay_ms"):
-            values = getattr(self, key)
-            if any(v < 0 for v in values):
-                raise TypError(where, f"{name}.{key}", "values >= 0", list(values))
         if any(d % 100 for d in self.delay_ms):
             raise TypError(where, f"{name}.delay_ms", "multiples of 100 ms (one 10 Hz frame)", list(self.delay_ms))
-        if any(not 1 <= b <= 16 for b in self.quantization_bits):
-            raise TypError(where, f"{name}.quantization_bits", "bit widths in [1, 16]", list(self.quantization_bits))
 
 
 @dataclass(frozen=True)
@@ -105,13 +123,11 @@ class AugmentConfig:
     the boxes, and conjugated into the agent->ego transforms so that they stay rigid."""
 
     flip: bool
-    rotation_deg: float
-    scale: tuple[float, float]
+    rotation_deg: Annotated[float, Bound(0, 180, "degrees either way: OpenCOOD's is 45")]
+    scale: tuple[Scale, Scale]
 
     def check(self, where: str, name: str) -> None:
-        if not 0 <= self.rotation_deg <= 180:
-            raise TypError(where, f"{name}.rotation_deg", "an angle in [0, 180] degrees", self.rotation_deg)
-        if not 0 < self.scale[0] <= self.scale[1]:
+        if not self.scale[0] <= self.scale[1]:
             raise TypError(where, f"{name}.scale", "[low, high] with 0 < low <= high", list(self.scale))
 
 
@@ -157,29 +173,32 @@ class FusionConfig:
     v2xvit: V2XViTConfig
     robustness: RobustnessConfig
     augment: AugmentConfig
-    comm_range: float
-    max_agents: int
-    batch_size: int
-    lr: float
-    finetune_lr: float
+    comm_range: CommRange
+    max_agents: Annotated[int, Bound(1, 64, "agents fused per sample, each a cloud through the backbone: "
+                                     "OpenCOOD's 5")]
+    batch_size: BatchSize
+    lr: LearningRate
+    finetune_lr: LearningRate
     lr_schedule: Literal["constant", "cosine"]
-    warmup: float
-    steps: int
-    pretrain_steps: int
+    warmup: Annotated[float, Bound(0, 1, "the share of the run spent warming up", high_open=True,
+                                   what="a fraction")]
+    steps: Steps
+    pretrain_steps: Steps
     pretrain_sources: tuple[PretrainSource, ...]
-    finetune_scenes: tuple[int, ...]
+    finetune_scenes: Annotated[tuple[Annotated[int, Bound(1, MAX_SCENARIOS, "scenarios of a fine-tuning subset")],
+                                     ...], Length(0, 16, "fine-tuning subsets, each training every method again")]
     warm_start: bool
-    warm_start_steps: int
-    seeds: int
-    generated_extent: float
-    min_gt_points: int
-    score_threshold: float
-    nms_threshold: float
-    max_boxes: int
-    bootstrap: int
-    seed: int
-    checkpoint_every: int
-    processes: int
+    warm_start_steps: Steps
+    seeds: TrainingSeeds
+    generated_extent: Annotated[float, Bound(0, 1000, "metres: 1 km is past every LiDAR's range", low_open=True)]
+    min_gt_points: Annotated[int, Bound(0, 100_000, "points in a box: a close car holds a few thousand")]
+    score_threshold: Threshold
+    nms_threshold: Threshold
+    max_boxes: Annotated[int, Bound(1, 1000, "boxes kept per frame, compared pairwise by NMS: OpenCOOD keeps 100")]
+    bootstrap: Replicates
+    seed: Seed
+    checkpoint_every: Steps
+    processes: Annotated[int, Bound(0, 256, "trainings at once, one process each (0: one per CPU thread)")]
     sim: str
     generated: str
     real_domain: str
@@ -198,21 +217,7 @@ class FusionConfig:
         self.robustness.check(where, f"{name}.robustness")
         self.augment.check(where, f"{name}.augment")
         _check_methods(where, f"{name}.methods", self.methods, FUSION_METHODS)
-        _positive_fields(self, where, name, "comm_range", "max_agents", "batch_size", "lr", "finetune_lr", "steps",
-                         "pretrain_steps", "warm_start_steps", "max_boxes", "checkpoint_every",
-                         "seeds", "generated_extent", "bootstrap")
         _check_methods(where, f"{name}.pretrain_sources", self.pretrain_sources, PRETRAIN_SOURCES, allow_empty=True)
-        if any(n < 1 for n in self.finetune_scenes):
-            raise TypError(where, f"{name}.finetune_scenes", "scenario counts >= 1 (0 and all are always run)",
-                           list(self.finetune_scenes))
-        for key in ("score_threshold", "nms_threshold", "warmup"):
-            if not 0 <= getattr(self, key) < 1:
-                raise TypError(where, f"{name}.{key}", "a number in [0, 1)", getattr(self, key))
-        if self.min_gt_points < 0:
-            raise TypError(where, f"{name}.min_gt_points", "a point count >= 0", self.min_gt_points)
-        if self.processes < 0:
-            raise TypError(where, f"{name}.processes", "a process count >= 0 (0: one per CPU thread)",
-                           self.processes)
 
     @property
     def training_seeds(self) -> tuple[int, ...]:
@@ -230,18 +235,12 @@ class SscNetworkConfig:
     """The SSC network (``models.ssc.ssc_detector``): PointPillars on V2VSSC's grid, three backbone
     levels (strides 2, 4, 8 over the 0.78125 m pillars), an occupancy head of ``head_hidden``."""
 
-    layer_nums: tuple[int, int, int]
-    num_filters: tuple[int, int, int]
-    num_upsample_filters: tuple[int, int, int]
-    pillar_channels: int
-    head_hidden: int
-    max_pillars: int
-
-    def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "pillar_channels", "head_hidden", "max_pillars")
-        for key in ("layer_nums", "num_filters", "num_upsample_filters"):
-            if any(v < 1 for v in getattr(self, key)):
-                raise TypError(where, f"{name}.{key}", "3 counts >= 1", list(getattr(self, key)))
+    layer_nums: tuple[LayerNum, LayerNum, LayerNum]
+    num_filters: tuple[Width, Width, Width]
+    num_upsample_filters: tuple[Width, Width, Width]
+    pillar_channels: Width
+    head_hidden: Width
+    max_pillars: Pillars
 
 
 @dataclass(frozen=True)
@@ -249,15 +248,12 @@ class SscNoisyConfig:
     """Table I's noisy setting: the cooperating agents' pose noise and message age (V2X-ViT's
     0.2 m / 0.2 deg / 100 ms unless changed)."""
 
-    position_std: float
-    heading_std_deg: float
-    delay_ms: int
+    position_std: MetresStd
+    heading_std_deg: DegreesStd
+    delay_ms: DelayMs
 
     def check(self, where: str, name: str) -> None:
-        if self.position_std < 0 or self.heading_std_deg < 0:
-            raise TypError(where, f"{name}.position_std", "standard deviations >= 0",
-                           [self.position_std, self.heading_std_deg])
-        if self.delay_ms < 0 or self.delay_ms % 100:
+        if self.delay_ms % 100:
             raise TypError(where, f"{name}.delay_ms", "a multiple of 100 ms >= 0 (10 Hz frames)", self.delay_ms)
 
 
@@ -292,27 +288,28 @@ class SscConfig:
     v2xvit: V2XViTConfig
     robustness: RobustnessConfig
     noisy: SscNoisyConfig
-    comm_range: float
-    steps: int
-    warm_start_steps: int
-    checkpoint_every: int
-    lr: float
-    finetune_lr: float
-    class_weight_eps: float
-    seeds: int
-    bootstrap: int
-    seed: int
+    comm_range: CommRange
+    steps: Steps
+    warm_start_steps: Steps
+    checkpoint_every: Steps
+    lr: LearningRate
+    finetune_lr: LearningRate
+    #: 1 / ln(eps + share) is finite for eps > 1 only, and past 100 every class weighs the same
+    class_weight_eps: Annotated[float, Bound(1, 100, "1 / ln(eps + share) needs eps > 1: V2VSSC's is 1.02",
+                                             low_open=True)]
+    seeds: TrainingSeeds
+    bootstrap: Replicates
+    seed: Seed
     sim: str
     generated: str
     domain: str
     train_split: str
     test_split: str
-    test_scenarios: int | None
+    test_scenarios: Annotated[int, Bound(1, MAX_SCENARIOS, "test scenarios scored (null: all)")] | None
     reports: str
     out: str
 
     def check(self, where: str, name: str) -> None:
-        self.network.check(where, f"{name}.network")
         self.v2xvit.check(where, f"{name}.v2xvit")
         if not self.data or self.data[0] != "oracle" or len(set(self.data)) != len(self.data):
             raise TypError(where, f"{name}.data", "oracle first (Table I, the robustness sweeps), then generated "
@@ -320,14 +317,6 @@ class SscConfig:
         self.robustness.check(where, f"{name}.robustness")
         self.noisy.check(where, f"{name}.noisy")
         _check_methods(where, f"{name}.methods", self.methods, SSC_METHODS)
-        _positive_fields(self, where, name, "comm_range", "steps", "warm_start_steps", "checkpoint_every", "lr",
-                         "finetune_lr", "seeds", "bootstrap")
-        if self.test_scenarios is not None and self.test_scenarios < 1:
-            raise TypError(where, f"{name}.test_scenarios", "None (every scenario) or a count >= 1",
-                           self.test_scenarios)
-        if not self.class_weight_eps > 1:
-            raise TypError(where, f"{name}.class_weight_eps", "a number > 1 (1 / ln(eps + share) stays finite)",
-                           self.class_weight_eps)
 
     @property
     def training_seeds(self) -> tuple[int, ...]:

@@ -4,41 +4,41 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
-from typ.config.base import Sampler, Schedule, _positive_fields
+from typ.config.base import (LEVELS, MAX_ADAPTER_SCALE, MAX_NOISE_STD, BatchSize, Bound, Decay, Distance, Epochs,
+                             LayersPerBlock, LearningRate, Length, NormGroups, Probability, Sampler, Schedule, Seed,
+                             Steps, Timesteps, Views, Width, Workers)
 from typ.errors import TypError
+
+FocalGamma = Annotated[float, Bound(0, 10, "a focal-loss exponent: TYP's is 2 (0: plain BCE)")]
+AdapterScale = Annotated[float, Bound(0, MAX_ADAPTER_SCALE, "a multiplier of the adapter's residuals: past it "
+                                      "they drown the UNet", low_open=True)]
 
 
 @dataclass(frozen=True)
 class AutoencoderConfig:
     """One VQ-VAE of TYP §3.2 (x or y): widths per level (``len - 1`` halvings), code size."""
 
-    block_out_channels: tuple[int, ...]
-    latent_channels: int
-    num_codes: int
-    norm_num_groups: int
-    gamma: float
-    epochs: int
+    block_out_channels: Annotated[tuple[Width, ...], LEVELS]
+    latent_channels: Annotated[int, Bound(1, 256, "channels of a latent cell: the paper's x^f has 8")]
+    num_codes: Annotated[int, Bound(1, 65_536, "codebook entries, each compared with every latent cell: the "
+                                    "paper's 1024")]
+    norm_num_groups: NormGroups
+    gamma: FocalGamma
+    epochs: Epochs
     #: "ema": EMA codebook with k-means init and dead-code restarts; "vq": Eq. 1's codebook term
     quantizer: Literal["ema", "vq"] = "ema"
     #: y only: "vqvae" (TYP: E_y, Q_y, G_y) or "pool" (the box map averaged per latent cell)
     encoding: Literal["vqvae", "pool"] = "vqvae"
-    ema_decay: float = 0.9
-    dead_code_threshold: float = 1.0
+    ema_decay: Annotated[float, Bound(0, 1, "an EMA decay", low_open=True, high_open=True)] = 0.9
+    dead_code_threshold: Annotated[float, Bound(0, 1e6, "an EMA cluster size: a code used less is restarted")] = 1.0
 
     def check(self, where: str, name: str) -> None:
-        if not 0 < self.ema_decay < 1:
-            raise TypError(where, f"{name}.ema_decay", "a decay in (0, 1)", self.ema_decay)
-        if self.dead_code_threshold < 0:
-            raise TypError(where, f"{name}.dead_code_threshold", "an EMA cluster size >= 0", self.dead_code_threshold)
-        if len(self.block_out_channels) < 1 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+        if any(c % self.norm_num_groups for c in self.block_out_channels):
             raise TypError(where, f"{name}.block_out_channels",
                            f"positive widths divisible by norm_num_groups={self.norm_num_groups}",
                            list(self.block_out_channels))
-        _positive_fields(self, where, name, "latent_channels", "num_codes", "norm_num_groups", "epochs")
-        if self.gamma < 0:
-            raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0 (0 is plain BCE)", self.gamma)
 
 
 @dataclass(frozen=True)
@@ -47,11 +47,11 @@ class VQVAEStageConfig:
 
     x: AutoencoderConfig
     y: AutoencoderConfig
-    batch_size: int
-    lr: float
-    seed: int
-    checkpoint_every: int
-    threshold: float
+    batch_size: BatchSize
+    lr: LearningRate
+    seed: Seed
+    checkpoint_every: Steps
+    threshold: Probability
     input: str
     dataset: str
     train_split: str
@@ -65,20 +65,17 @@ class VQVAEStageConfig:
             raise TypError(where, f"{name}.y.block_out_channels",
                            "as many levels as x (x^f and y^f must share one latent resolution)",
                            list(self.y.block_out_channels))
-        _positive_fields(self, where, name, "batch_size", "lr", "checkpoint_every")
-        if not 0 < self.threshold < 1:
-            raise TypError(where, f"{name}.threshold", "a probability in (0, 1)", self.threshold)
 
 
 @dataclass(frozen=True)
 class UNetConfig:
     """ε_θ's UNet: widths per level (latents are halved ``len - 1`` times), time embedding."""
 
-    block_out_channels: tuple[int, ...]
-    layers_per_block: int
-    cross_attention_dim: int
-    attention_head_dim: int
-    norm_num_groups: int
+    block_out_channels: Annotated[tuple[Width, ...], LEVELS]
+    layers_per_block: LayersPerBlock
+    cross_attention_dim: Width
+    attention_head_dim: Width
+    norm_num_groups: NormGroups
     time_embedding: Literal["sinusoidal", "fourier"]
     #: the transformer blocks' self-attention over latent cells (off: cross-attention only, 2x faster)
     self_attention: bool = True
@@ -86,26 +83,19 @@ class UNetConfig:
     coordinates: bool = False
 
     def check(self, where: str, name: str) -> None:
-        if len(self.block_out_channels) < 2 or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
+        if len(self.block_out_channels) < 2 or any(c % self.norm_num_groups for c in self.block_out_channels):
             raise TypError(where, f"{name}.block_out_channels",
                            f">= 2 positive widths divisible by norm_num_groups={self.norm_num_groups}",
                            list(self.block_out_channels))
-        _positive_fields(self, where, name, "layers_per_block", "cross_attention_dim", "attention_head_dim",
-                         "norm_num_groups")
 
 
 @dataclass(frozen=True)
 class PostprocessConfig:
     """TYP §4.1: thresholds low/high chosen from ``candidates`` on the validation split."""
 
-    noise_std: float
-    candidates: tuple[float, ...]
-
-    def check(self, where: str, name: str) -> None:
-        if self.noise_std < 0:
-            raise TypError(where, f"{name}.noise_std", "a standard deviation >= 0", self.noise_std)
-        if not self.candidates or any(not 0 < c < 1 for c in self.candidates):
-            raise TypError(where, f"{name}.candidates", "probabilities in (0, 1)", list(self.candidates))
+    noise_std: Annotated[float, Bound(0, MAX_NOISE_STD, "a standard deviation of logit noise: TYP's is 1")]
+    candidates: Annotated[tuple[Probability, ...], Length(1, 32, "thresholds, every pair of them scored on the "
+                                                          "validation split")]
 
 
 @dataclass(frozen=True)
@@ -114,17 +104,17 @@ class Stage1Config:
 
     unet: UNetConfig
     schedule: Schedule
-    train_timesteps: int
-    epochs: int
-    batch_size: int
-    lr: float
-    seed: int
-    checkpoint_every: int
+    train_timesteps: Timesteps
+    epochs: Epochs
+    batch_size: BatchSize
+    lr: LearningRate
+    seed: Seed
+    checkpoint_every: Steps
     sampler: Sampler
-    sample_steps: int
-    eta: float
+    sample_steps: Timesteps
+    eta: Annotated[float, Bound(0, 1, "DDIM's eta: 0 is deterministic, 1 is DDPM's variance")]
     postprocess: PostprocessConfig
-    eval_views: int
+    eval_views: Views
     input: str
     vqvae: str
     dataset: str
@@ -132,30 +122,25 @@ class Stage1Config:
     val_split: str
     out: str
     #: weights averaged with this decay sample the model (the training weights do not)
-    ema_decay: float = 0.999
-    warmup_steps: int = 100
+    ema_decay: Decay = 0.999
+    warmup_steps: Steps = 100
     lr_schedule: Literal["constant", "cosine"] = "cosine"
     #: models trained with seeds seed, seed + 1, ... (the first feeds later stages)
-    replicas: int = 1
+    replicas: Annotated[int, Bound(1, 32, "trainings of the generator, one per seed: the paper's tables use 3")] = 1
     #: what the UNet outputs (Eq. 4's minimiser either way): epsilon, sample (z_0) or v_prediction
     prediction: Literal["epsilon", "sample", "v_prediction"] = "epsilon"
     #: Min-SNR-γ loss weighting (0: the plain mean squared error of Eq. 4)
-    min_snr: float = 0.0
+    min_snr: Annotated[float, Bound(0, 1000, "Min-SNR's gamma: 5 in its paper")] = 0.0
     #: train on the ego views of the training split only (True), or on every agent's view, each
     #: taken alone as one more single-agent scan of the target domain (no pairing is used)
     ego_only: bool = True
 
     def check(self, where: str, name: str) -> None:
         self.unet.check(where, f"{name}.unet")
-        self.postprocess.check(where, f"{name}.postprocess")
-        _positive_fields(self, where, name, "train_timesteps", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "eval_views", "warmup_steps", "replicas")
-        if not 0 <= self.ema_decay < 1:
-            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
         if not 1 <= self.sample_steps <= self.train_timesteps:
             raise TypError(where, f"{name}.sample_steps", f"an integer in [1, train_timesteps={self.train_timesteps}]",
                            self.sample_steps)
-        if self.eta < 0 or (self.eta and self.sampler != "ddim"):
+        if self.eta and self.sampler != "ddim":
             raise TypError(where, f"{name}.eta", "0, or >= 0 with sampler ddim", self.eta)
 
 
@@ -163,16 +148,17 @@ class Stage1Config:
 class AdaptConfig:
     """Stage ``adapt`` (TYP Eq. 8–10): E_src, G_src against a hinge discriminator on x^f."""
 
-    disc_width: int
-    epochs: int
-    batch_size: int
-    lr: float
-    lr_disc: float
-    gamma: float
-    seed: int
-    checkpoint_every: int
-    max_disc_loss: float
-    eval_views: int
+    disc_width: Width
+    epochs: Epochs
+    batch_size: BatchSize
+    lr: LearningRate
+    lr_disc: LearningRate
+    gamma: FocalGamma
+    seed: Seed
+    checkpoint_every: Steps
+    #: the hinge loss is 2 at chance; far past it training has diverged
+    max_disc_loss: Annotated[float, Bound(0, 1e6, "a hinge loss, 2 at chance", low_open=True)]
+    eval_views: Views
     input: str
     vqvae: str
     source_dataset: str
@@ -182,10 +168,7 @@ class AdaptConfig:
     out: str
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "disc_width", "epochs", "batch_size", "lr", "lr_disc", "checkpoint_every",
-                         "max_disc_loss", "eval_views")
-        if self.gamma < 0:
-            raise TypError(where, f"{name}.gamma", "a focal-loss gamma >= 0", self.gamma)
+        pass  # the bounds beside the fields are the whole check
 
 
 @dataclass(frozen=True)
@@ -199,12 +182,12 @@ class Stage2Config:
     (rotations and mirrors) symmetries per tuple; ``max_pairs``: source tuples used (0: all).
     """
 
-    adapter_res_blocks: int
-    epochs: int
-    batch_size: int
-    lr: float
-    seed: int
-    checkpoint_every: int
+    adapter_res_blocks: LayersPerBlock
+    epochs: Epochs
+    batch_size: BatchSize
+    lr: LearningRate
+    seed: Seed
+    checkpoint_every: Steps
     sim: str
     voxels: str
     vqvae: str
@@ -213,21 +196,16 @@ class Stage2Config:
     source_domain: str
     source_split: str
     out: str
-    warmup_steps: int = 100
+    warmup_steps: Steps = 100
     lr_schedule: Literal["constant", "cosine"] = "cosine"
-    ema_decay: float = 0.999
+    ema_decay: Decay = 0.999
     augment: Literal[1, 2, 8] = 2
-    max_pairs: int = 0
+    max_pairs: Annotated[int, Bound(0, 100_000_000, "source tuples used, a cap (0: all)")] = 0
     resim: bool = False
     one_stage: bool = False
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "adapter_res_blocks", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "warmup_steps")
-        if not 0 <= self.ema_decay < 1:
-            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
-        if self.max_pairs < 0:
-            raise TypError(where, f"{name}.max_pairs", "a number of tuples >= 0 (0: all)", self.max_pairs)
+        pass  # the bounds beside the fields are the whole check
 
 
 @dataclass(frozen=True)
@@ -249,16 +227,17 @@ class SelftrainConfig:
     self_training: bool
     dummy_ego: bool
     ablation: bool
-    pseudo_references: int
-    min_distance: float
-    max_distance: float
-    epochs: int
-    batch_size: int
-    lr: float
-    seed: int
-    checkpoint_every: int
+    pseudo_references: Annotated[int, Bound(1, 100_000, "pseudo references, each a diffusion sample: the paper's "
+                                            "2000")]
+    min_distance: Distance
+    max_distance: Annotated[float, Bound(0, 1000, "metres: 1 km is past every LiDAR's range", low_open=True)]
+    epochs: Epochs
+    batch_size: BatchSize
+    lr: LearningRate
+    seed: Seed
+    checkpoint_every: Steps
     sampler: Sampler
-    sample_steps: int
+    sample_steps: Timesteps
     sim: str
     voxels: str
     vqvae: str
@@ -270,20 +249,16 @@ class SelftrainConfig:
     target_domain: str
     target_split: str
     out: str
-    warmup_steps: int = 50
+    warmup_steps: Steps = 50
     lr_schedule: Literal["constant", "cosine"] = "cosine"
-    ema_decay: float = 0.999
+    ema_decay: Decay = 0.999
     generator: Literal["typ", "typ_resim"] = "typ"
-    adapter_scale: float = 1.0
+    adapter_scale: AdapterScale = 1.0
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "pseudo_references", "epochs", "batch_size", "lr", "checkpoint_every",
-                         "sample_steps", "max_distance", "warmup_steps", "adapter_scale")
-        if not 0 <= self.min_distance < self.max_distance:
+        if not self.min_distance < self.max_distance:
             raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
                            self.min_distance)
-        if not 0 <= self.ema_decay < 1:
-            raise TypError(where, f"{name}.ema_decay", "a decay in [0, 1) (0: no averaging)", self.ema_decay)
 
 
 @dataclass(frozen=True)
@@ -307,19 +282,12 @@ class CastConfig:
     ``reports/generation_ablation.md`` measures each choice."""
 
     #: labelled vehicles (y_r) as closed boxes, each edge scaled by this; 0: none
-    label_boxes: float = 0.9
+    label_boxes: Annotated[float, Bound(0, 2, "a scale of each box edge (0: no label boxes)")] = 0.9
     #: the road surface lies under ``generated`` ground voxels only, every cell the ego did not
     #: see (``unseen``) or ``everywhere`` (under the ego's surfels too)
     road: Literal["generated", "unseen", "everywhere"] = "unseen"
     #: drop generated voxels an ego ray crossed before its return: the ego saw them empty
     carve: bool = True
-
-    def check(self, where: str, name: str) -> None:
-        if isinstance(self.label_boxes, bool) or not isinstance(self.label_boxes, (int, float)) \
-                or not 0.0 <= self.label_boxes <= 2.0:
-            raise TypError(where, f"{name}.label_boxes", "a scale in [0, 2] (0: no label boxes)", self.label_boxes)
-        if not isinstance(self.carve, bool):
-            raise TypError(where, f"{name}.carve", "true or false", self.carve)
 
 
 #: ``generate.compose``: what a reference view is made of (:class:`GenerateConfig`)
@@ -330,20 +298,22 @@ COMPOSE = ("generated", "hybrid", "cast")
 class GenerateConfig:
     """Stage ``generate`` (TYP §4.5): reference views for single-agent frames, written as OPV2V agents."""
 
-    references_per_frame: int
+    references_per_frame: Annotated[int, Bound(1, 64, "reference views per frame, each a diffusion sample of "
+                                               "seconds: TYP's 2; OPV2V scenes hold at most 7 cars")]
     #: roadside units per scenario (``vehicles`` sets): virtual sensors on observed ground, facing the ego
-    roadside_units: int
-    min_distance: float
-    max_distance: float
+    roadside_units: Annotated[int, Bound(0, 64, "roadside views per scenario, each a diffusion sample")]
+    min_distance: Distance
+    max_distance: Annotated[float, Bound(0, 1000, "metres: 1 km is past every LiDAR's range", low_open=True)]
     sampler: Sampler
-    sample_steps: int
-    seed: int
+    sample_steps: Timesteps
+    seed: Seed
     input: str
-    sets: tuple[GenerateSet, ...]
+    sets: Annotated[tuple[GenerateSet, ...], Length(1, 64, "{dataset, split, references} sets, each "
+                                                                   "generated whole")]
     #: the folder selftrain writes the trained generators to (``<generator>/generator/seed_<s>``)
     generator: str
     out: str
-    workers: int
+    workers: Workers
     #: what a reference view is made of: ``generated`` — the generator's sample alone (TYP);
     #: ``hybrid`` — the ego's cloud re-simulated from the reference pose in the BEV cells the ego
     #: saw, the generator's sample elsewhere (the ``hybrid`` row of reports/generation_accuracy.md);
@@ -353,15 +323,9 @@ class GenerateConfig:
     cast: CastConfig = dataclasses.field(default_factory=CastConfig)
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "references_per_frame", "sample_steps", "max_distance", "workers")
-        self.cast.check(where, f"{name}.cast")
-        if self.roadside_units < 0:
-            raise TypError(where, f"{name}.roadside_units", "a count >= 0", self.roadside_units)
-        if not 0 <= self.min_distance < self.max_distance:
+        if not self.min_distance < self.max_distance:
             raise TypError(where, f"{name}.min_distance", f"0 <= min_distance < max_distance={self.max_distance}",
                            self.min_distance)
-        if not self.sets:
-            raise TypError(where, f"{name}.sets", "at least one {dataset, split, references}", [])
         seen = set()
         for i, s in enumerate(self.sets):
             if (s.dataset, s.split) in seen:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
-from typ.config.base import _positive_fields
-from typ.config.data import SimulateConfig, VoxelizeConfig
+from typ.config.base import Bound, Length, Replicates, Seed
+from typ.config.data import MAX_SCANS, SimulateConfig, VoxelizeConfig
 from typ.config.ddpm import DdpmConfig
 from typ.config.detection import FusionConfig, SscConfig
 from typ.config.generation import (AdaptConfig, GenerateConfig, SelftrainConfig, Stage1Config, Stage2Config,
@@ -58,6 +58,43 @@ class ServeConfig:
 
 
 @dataclass(frozen=True)
+class NovelViewSequence:
+    """A real drive in the KITTI odometry layout whose scans ``evaluate`` scores generated views
+    against (:mod:`tasks.novel_view`): every view made for a scan's pose from another scan."""
+
+    #: the dataset root (``sequences/<sequence>/``), relative to the project root or absolute
+    root: str
+    sequence: str = "00"
+    #: the drive's LiDAR preset (``typ.sensors.SENSORS``); empty: estimated from its first scan
+    sensor: str = ""
+    #: ``[first, stop)``: score only pairs of these scans (the range the generator did not train on)
+    frames: tuple[Annotated[int, Bound(0, MAX_SCANS, "a scan index: a day at 10 Hz is 864,000")],
+                  Annotated[int, Bound(0, MAX_SCANS, "a scan index: a day at 10 Hz is 864,000")]] | None = None
+
+    def check(self, where: str, name: str) -> None:
+        if not self.root.strip():
+            raise TypError(where, f"{name}.root", "the path of a dataset root in the KITTI odometry layout", self.root)
+        if self.frames is not None and not self.frames[0] < self.frames[1]:
+            raise TypError(where, f"{name}.frames", "[first, stop) with first < stop", list(self.frames))
+
+
+@dataclass(frozen=True)
+class NovelViewConfig:
+    """``evaluate``'s real-scan section; no drive, no section: ``make run`` needs no real data."""
+
+    sequences: Annotated[tuple[NovelViewSequence, ...], Length(0, 64, "real drives, each scored whole")] = ()
+    #: score the first this many pairs of each drive (0: every pair)
+    max_pairs: Annotated[int, Bound(0, 1_000_000, "pairs scored per drive, each about 10 s for every method "
+                                    "(0: all)")] = 0
+    #: one picture per distance band of each drive
+    pictures: bool = True
+
+    def check(self, where: str, name: str) -> None:
+        for k, drive in enumerate(self.sequences):
+            drive.check(where, f"{name}.sequences[{k}]")
+
+
+@dataclass(frozen=True)
 class EvaluateConfig:
     """Stage ``evaluate``: every benchmark table on held-out data, with bootstrap intervals.
 
@@ -66,10 +103,11 @@ class EvaluateConfig:
     rendered to ``reports/gallery``; ``n_boot`` bootstrap replicates for each interval.
     """
 
-    seed: int
-    n_boot: int
-    max_pairs: int
-    gallery: int
+    seed: Seed
+    n_boot: Replicates
+    max_pairs: Annotated[int, Bound(0, 1_000_000, "(ego, reference) pairs scored, each sampled once per method "
+                                    "and seed (0: all)")]
+    gallery: Annotated[int, Bound(0, 1000, "samples rendered to pictures")]
     target_domain: str
     target_split: str
     source_domain: str
@@ -83,12 +121,11 @@ class EvaluateConfig:
     selftrain: str
     reports: str
     out: str
+    #: real drives the generated views are scored on (``reports/novel_view/<drive>/``); none by default
+    novel_view: NovelViewConfig = NovelViewConfig()
 
     def check(self, where: str, name: str) -> None:
-        _positive_fields(self, where, name, "n_boot")
-        for key in ("max_pairs", "gallery"):
-            if getattr(self, key) < 0:
-                raise TypError(where, f"{name}.{key}", "a count >= 0", getattr(self, key))
+        self.novel_view.check(where, f"{name}.novel_view")   # the bounds beside the fields are the rest
 
 
 @dataclass(frozen=True)

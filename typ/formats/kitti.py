@@ -22,6 +22,7 @@ scaled matrix is refused where it is read, not met as a LinAlgError when labels 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,7 @@ import numpy as np
 from typ import geometry
 from typ.errors import TypError
 from typ.formats.binfile import read_bin
-from typ.inputs import MiB, read_text
+from typ.inputs import MiB, inside, read_text
 from typ.scene import AgentView, Scene
 
 _CALIB_SHAPES = {"R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
@@ -40,6 +41,8 @@ MAX_BOX_SIZE = 100.0
 MAX_TEXT_BYTES = 1 * MiB
 #: how far a calibration rotation's singular values may stray from 1 (KITTI's: about 1e-4)
 RIGID_TOLERANCE = 0.1
+#: a split folder or frame id: one name, never a path
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
 
 
 def read_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -137,18 +140,23 @@ def read_kitti_frame(root: str | os.PathLike, frame_id: int | str, split: str = 
     Points come from ``velodyne/`` or, when that frame is absent, ``velodyne_reduced/``.
     Without ``label_2/`` (the testing split) the frame has no boxes and calib is not needed.
     Box ids are the label rows' order (0, 1, ...) after DontCare rows are dropped.
+    ``split`` and ``frame_id`` are plain names, and every file read lies inside ``root``, links
+    followed (:func:`typ.inputs.inside`): a frame id of a split file cannot lead elsewhere.
     """
+    for field, value in (("split", split), ("frame_id", frame_id)):
+        if not _PLAIN_NAME.fullmatch(str(value)) or str(value) in (".", ".."):
+            raise TypError(root, field, "a plain name (letters, digits, '.', '_', '-'; no folders)", value)
     base = Path(root) / split
     name = f"{int(frame_id):06d}" if str(frame_id).isdigit() else str(frame_id)
-    candidates = [base / folder / f"{name}.bin" for folder in ("velodyne", "velodyne_reduced")]
+    candidates = [inside(Path(split) / folder / f"{name}.bin", root) for folder in ("velodyne", "velodyne_reduced")]
     bin_path = next((c for c in candidates if c.is_file()), None)
     if bin_path is None:
         raise TypError(base, "velodyne", f"{name}.bin under velodyne/ or velodyne_reduced/", "not found")
     points = read_velodyne(bin_path)
-    label_path = base / "label_2" / f"{name}.txt"
+    label_path = inside(Path(split) / "label_2" / f"{name}.txt", root)
     boxes, labels = np.zeros((0, 7)), ()
     if label_path.parent.is_dir():
-        boxes, labels = read_labels(label_path, read_calib(base / "calib" / f"{name}.txt"))
+        boxes, labels = read_labels(label_path, read_calib(inside(Path(split) / "calib" / f"{name}.txt", root)))
     view = AgentView(agent_id="ego", points=points, pose=np.eye(4), boxes=boxes, box_labels=labels,
                      box_ids=np.arange(len(boxes)), where=str(bin_path))
     return Scene(scenario=name, timestamp=name, agents={"ego": view}, dataset="kitti", split=split)

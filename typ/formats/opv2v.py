@@ -30,7 +30,7 @@ import yaml
 from typ import geometry
 from typ.errors import TypError
 from typ.formats.pcd import read_pcd, read_pcd_header, write_pcd
-from typ.inputs import MiB, finite_numbers, load_yaml
+from typ.inputs import MiB, finite_numbers, inside, load_yaml
 from typ.io import write_text
 from typ.scene import AgentView, Scene
 
@@ -63,7 +63,8 @@ _Loader.add_implicit_resolver(
 
 
 def list_scenarios(root: str | os.PathLike) -> list[Path]:
-    """Scenario folders under ``root``, sorted by name (hidden and temporary folders skipped)."""
+    """Scenario folders under ``root``, sorted by name (hidden and temporary folders skipped; a link
+    to a scenario folder is one, see :func:`agent_file`)."""
     r = Path(root)
     if not r.is_dir():
         raise TypError(r, "root", "a folder of OPV2V-layout scenarios", "not a folder")
@@ -73,7 +74,7 @@ def list_scenarios(root: str | os.PathLike) -> list[Path]:
 def list_agents(scenario_dir: str | os.PathLike) -> list[str]:
     """Agent folder names in OpenCOOD's order: sorted as strings, negative ids (RSUs) moved last.
 
-    The first one is the ego.
+    The first one is the ego (a link to an agent folder is one, see :func:`agent_file`).
     """
     s = Path(scenario_dir)
     if not s.is_dir():
@@ -84,11 +85,17 @@ def list_agents(scenario_dir: str | os.PathLike) -> list[str]:
     return [a for a in names if not _is_rsu(a)] + [a for a in names if _is_rsu(a)]
 
 
+def time_order(stamp: str) -> tuple:
+    """Sort key of a timestamp: stamps of digits by their number (``9`` before ``10``), then any
+    other as a string. OPV2V's zero-padded stamps (``000068``) sort as OpenCOOD sorts them, as strings."""
+    return (int(stamp), stamp) if stamp.isascii() and stamp.isdigit() else (float("inf"), stamp)
+
+
 def list_timestamps(scenario_dir: str | os.PathLike) -> list[str]:
-    """Timestamps (yaml stems, sorted) of the ego agent; OpenCOOD indexes a scenario by these."""
+    """Timestamps (yaml stems, in :func:`time_order`) of the ego agent; OpenCOOD indexes a scenario by these."""
     ego = Path(scenario_dir) / list_agents(scenario_dir)[0]
-    return sorted(f.stem for f in ego.glob("*.yaml")
-                  if "additional" not in f.name and not f.name.startswith("."))
+    return sorted((f.stem for f in ego.glob("*.yaml") if "additional" not in f.name and not f.name.startswith(".")),
+                  key=time_order)
 
 
 def read_scene(scenario_dir: str | os.PathLike, timestamp: str, *, agents: list[str] | None = None,
@@ -98,11 +105,11 @@ def read_scene(scenario_dir: str | os.PathLike, timestamp: str, *, agents: list[
     ids = list_agents(s) if agents is None else list(agents)
     views = {}
     for agent in ids:
-        yaml_path = s / agent / f"{timestamp}.yaml"
+        yaml_path = agent_file(s, agent, f"{timestamp}.yaml")
         doc = _load_yaml(yaml_path)
         lidar_pose = finite_numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
         boxes, labels, box_ids = _vehicle_boxes(yaml_path, doc, lidar_pose)
-        pcd_path = yaml_path.with_suffix(".pcd")
+        pcd_path = agent_file(s, agent, f"{timestamp}.pcd")
         if not pcd_path.is_file():
             raise TypError(pcd_path, "pcd", f"a point cloud beside {yaml_path.name}", "no such file")
         points, semantics = read_pcd(pcd_path)
@@ -110,6 +117,27 @@ def read_scene(scenario_dir: str | os.PathLike, timestamp: str, *, agents: list[
                                  boxes=boxes, box_labels=labels, box_ids=box_ids,
                                  semantics=semantics, where=str(yaml_path))
     return Scene(scenario=s.name, timestamp=str(timestamp), agents=views, dataset=dataset, split=split)
+
+
+def agent_file(scenario_dir: str | os.PathLike, agent: str, name: str) -> Path:
+    """``scenario_dir/agent/name``, a file of one agent's folder, as every reader here opens it.
+
+    ``agent`` is a folder name, never a path. Scenario and agent folders may be links: copies of
+    OPV2V and V2V4Real are commonly assembled from links to the agent folders of a dataset kept
+    elsewhere, and each is read as the folder it leads to (its real path is the root, as a linked
+    dataset root is, :func:`typ.inputs.inside`). The file itself must lie in that folder: a
+    timestamp that climbs out, or a ``.pcd``/``.yaml`` that is a link to elsewhere, is refused
+    before anything is read.
+    """
+    s = Path(scenario_dir)
+    if not _is_name(agent):
+        raise TypError(s, "agent", "an agent folder name (no '/', not '.' or '..')", agent)
+    return inside(name, s / agent, field="file")
+
+
+def _is_name(name) -> bool:
+    """Whether ``name`` is one plain folder or file name (no separator, not ``.``/``..``, no NUL)."""
+    return isinstance(name, str) and name not in ("", ".", "..") and not any(c in name for c in ("/", "\\", "\0"))
 
 
 def check_root(root: str | os.PathLike, splits: list[str]) -> dict[str, list[Path]]:
@@ -124,6 +152,8 @@ def check_root(root: str | os.PathLike, splits: list[str]) -> dict[str, list[Pat
                        "not a folder")
     found = {}
     for split in splits:
+        if not _is_name(split):
+            raise TypError(r, "split", "a split folder name (no '/', not '.' or '..')", split)
         folder = r / split
         if not folder.is_dir():
             raise TypError(folder, "split", f"a folder of scenarios (the split {split!r} of {r})", "no such folder")
@@ -140,6 +170,8 @@ def check_scenario(scenario_dir: str | os.PathLike) -> dict[str, int]:
     those timestamps, in :func:`list_agents` order, a yaml with ``lidar_pose`` (six finite numbers
     ``[x, y, z, roll, yaw, pitch]``) and ``vehicles`` (each with location, angle, extent, center),
     and a PCD beside it whose header holds x, y, z. The first bad file raises TypError naming it.
+    No ``.pcd`` or ``.yaml`` of an agent folder (what a copy of the scenario takes, these frames
+    or not) may be a link out of that folder (:func:`agent_file`).
     Returns counts: frames, views, points (from the PCD headers), boxes.
     """
     s = Path(scenario_dir)
@@ -147,14 +179,18 @@ def check_scenario(scenario_dir: str | os.PathLike) -> dict[str, int]:
     stamps = list_timestamps(s)
     if not stamps:
         raise TypError(s / agents[0], "timestamps", "at least one <timestamp>.yaml (the ego's frames)", "none")
+    for agent in agents:
+        for f in sorted((s / agent).iterdir()):
+            if f.suffix in (".pcd", ".yaml") and not f.name.startswith("."):
+                agent_file(s, agent, f.name)
     counts = {"frames": len(stamps), "views": 0, "points": 0, "boxes": 0}
     for agent in agents:
         for ts in stamps:
-            yaml_path = s / agent / f"{ts}.yaml"
+            yaml_path = agent_file(s, agent, f"{ts}.yaml")
             doc = _load_yaml(yaml_path)
             lidar_pose = finite_numbers(yaml_path, "lidar_pose", doc.get("lidar_pose"), 6)
             boxes, _, _ = _vehicle_boxes(yaml_path, doc, lidar_pose)
-            header = read_pcd_header(yaml_path.with_suffix(".pcd"))
+            header = read_pcd_header(agent_file(s, agent, f"{ts}.pcd"))
             counts["views"] += 1
             counts["points"] += header["points"]
             counts["boxes"] += len(boxes)
@@ -163,21 +199,28 @@ def check_scenario(scenario_dir: str | os.PathLike) -> dict[str, int]:
 
 def scenario_sensor(scenario_dir: str | os.PathLike) -> str | None:
     """The LiDAR the ego's first yaml names (``sensor``: typ writes a real dataset's name there,
-    ``kitti``, ``waymo``, ...), or None when it names none (a simulated or dropped-in scenario)."""
+    ``kitti``, ``waymo``, ...), or None when it names none (a simulated or dropped-in scenario).
+
+    A name that is no LiDAR of :data:`typ.sensors.SENSORS` raises TypError naming this yaml and its
+    ``sensor`` field: the caller looks the name up in params' sensors, and an error raised there
+    would blame ``params.yaml`` for what the scenario's file says."""
+    from typ.sensors import SENSORS  # the sensors import the simulator: only a reader of ``sensor`` pays for it
+
     s = Path(scenario_dir)
     stamps = list_timestamps(s)
     if not stamps:
         return None
     ego = list_agents(s)[0]
     sensor = read_meta(s, ego, stamps[0]).get("sensor")
-    if sensor is not None and not (isinstance(sensor, str) and sensor.strip()):
-        raise TypError(s / ego / f"{stamps[0]}.yaml", "sensor", "the name of the LiDAR (a string)", sensor)
+    if sensor is not None and not (isinstance(sensor, str) and sensor in SENSORS):
+        raise TypError(s / ego / f"{stamps[0]}.yaml", "sensor", f"the name of a known LiDAR, one of {sorted(SENSORS)}",
+                       sensor)
     return sensor
 
 
 def read_meta(scenario_dir: str | os.PathLike, agent: str, timestamp: str) -> dict[str, object]:
     """The :data:`META_KEYS` present in one agent's yaml (``ego_speed``, ``true_ego_pos``, ``sensor``)."""
-    doc = _load_yaml(Path(scenario_dir) / agent / f"{timestamp}.yaml")
+    doc = _load_yaml(agent_file(scenario_dir, agent, f"{timestamp}.yaml"))
     return {k: doc[k] for k in META_KEYS if k in doc}
 
 

@@ -13,19 +13,31 @@ import numpy as np
 from typ.errors import TypError
 from typ.metrics.truth import check_points
 from typ.voxel import Grid
-def local_ground(truth, grid: Grid, *, window: int = 5) -> np.ndarray:
+
+#: side (m) of the neighbourhood a cell's ground is taken from: wider than a car, so that a cell
+#: whose only return is a car's roof reaches the road beside the car on any grid
+GROUND_WINDOW_M = 4.0
+
+
+def ground_window(grid: Grid) -> int:
+    """The odd number of cells nearest :data:`GROUND_WINDOW_M` on ``grid``: 5 on 0.8 m cells, 21 on 0.2 m."""
+    return 2 * int(np.floor((GROUND_WINDOW_M / float(min(grid.voxel_size[:2])) - 1) / 2 + 0.5)) + 1
+
+
+def local_ground(truth, grid: Grid, *, window: int | None = None) -> np.ndarray:
     """(H, W) float64 ground height (z, the grid's frame) under every BEV cell of one true view.
 
     truth: (H, W, C) bool occupancy on ``grid``. The ground of a cell is the lowest occupied
     voxel centre among the cells within ``window // 2`` cells of it (a ``window`` x ``window``
-    neighbourhood, 4 m on the tiny grid), so a cell whose ground is hidden under a car or a
-    wall takes its neighbours' ground; a neighbourhood with no occupied voxel at all takes the
-    median of the view's per-cell lowest heights (the ground of a flat scene); an empty view
-    takes the grid's lowest bin centre.
+    neighbourhood, by default :func:`ground_window`: about 4 m), so a cell whose ground is
+    hidden under a car or a wall takes its neighbours' ground; a neighbourhood with no occupied
+    voxel at all takes the median of the view's per-cell lowest heights (the ground of a flat
+    scene); an empty view takes the grid's lowest bin centre.
     """
     occ = np.asarray(truth)
     if occ.shape != grid.shape or occ.dtype != bool:
         raise TypError("local_ground", "truth", f"{grid.shape} bool array", f"{occ.shape} {occ.dtype}")
+    window = ground_window(grid) if window is None else window
     if window < 1 or window % 2 == 0:
         raise TypError("local_ground", "window", "an odd number of cells >= 1", window)
     z = grid.centers(2)
@@ -38,7 +50,7 @@ def local_ground(truth, grid: Grid, *, window: int = 5) -> np.ndarray:
     return np.where(np.isfinite(ground), ground, float(np.median(lowest[any_occ])))
 
 
-def above_ground(truth, grid: Grid, *, margin: float = 0.3, window: int = 5) -> np.ndarray:
+def above_ground(truth, grid: Grid, *, margin: float = 0.3, window: int | None = None) -> np.ndarray:
     """(H, W, C) bool: voxels whose centre is more than ``margin`` m over :func:`local_ground` of
     the true view ``truth`` (H, W, C). Ground dominates a LiDAR grid, so IoU restricted to this
     mask measures walls, vehicles and vegetation, the structure a detector needs."""

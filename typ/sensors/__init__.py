@@ -16,7 +16,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from typ.config import ElevationRule, SensorConfig, _build
+from typ.config import ElevationRule, SensorConfig, _build, as_dict
 from typ.errors import TypError
 from typ.sensors.fit import SensorFit, beam_residuals, fit_ground, fit_sensor, on_beam_fractions
 from typ.sensors.presets import PRESETS
@@ -31,7 +31,9 @@ def resolve(sensor, *, where: str = "params.yaml", field: str = "sensor") -> Sen
     """The SensorSpec of ``sensor``: a name in :data:`SENSORS`, a ``sensor:`` block (a mapping as
     params.yaml holds it, or a checked :class:`typ.config.SensorConfig`), or a SensorSpec itself.
 
-    where, field: what a TypError names (``params.yaml``, ``simulate.sources.target.sensor``).
+    where, field: what a TypError names (``params.yaml``, ``simulate.sources.target.sensor``). Every number
+    of a block is checked against the bound beside its field in :class:`typ.config.SensorConfig` (beams,
+    azimuth step, ranges) before anything is allocated for it.
     """
     if isinstance(sensor, SensorSpec):
         return sensor
@@ -39,10 +41,11 @@ def resolve(sensor, *, where: str = "params.yaml", field: str = "sensor") -> Sen
         if sensor not in SENSORS:
             raise TypError(where, field, f"a sensor name in {sorted(SENSORS)} or a sensor block", sensor)
         return SENSORS[sensor]
-    if isinstance(sensor, Mapping):
-        sensor = _build(SensorConfig, dict(sensor), where, field)
-    if not isinstance(sensor, SensorConfig):
+    if isinstance(sensor, SensorConfig):  # built in code: its numbers meet the bounds a block's must
+        sensor = as_dict(sensor)
+    if not isinstance(sensor, Mapping):
         raise TypError(where, field, f"a sensor name in {sorted(SENSORS)} or a sensor block", type(sensor).__name__)
+    sensor = _build(SensorConfig, dict(sensor), where, field)
     sensor.check(where, field)
     return SensorSpec(name=sensor.name, elevations_deg=elevations(sensor.elevations_deg),
                       azimuth_step_deg=sensor.azimuth_step_deg, max_range=sensor.max_range,
