@@ -51,9 +51,10 @@ def to_grid(cfg: GridConfig) -> Grid:
 
 
 def plan_inputs(root: Path) -> list[ScenarioInput]:
-    """Scenario folders ``root/<dataset>/<split>/<scenario>`` (hidden temporaries excluded)."""
-    return [ScenarioInput(p.parent.parent.name, p.parent.name, p)
-            for p in sorted(root.glob("*/*/*")) if p.is_dir() and not p.name.startswith(".")]
+    """Scenario folders ``root/<dataset>/<split>/<scenario>`` (hidden names excluded at every level:
+    temporaries, and typ's records of what simulate wrote, ``<dataset>/.typ/``)."""
+    return [ScenarioInput(p.parent.parent.name, p.parent.name, p) for p in sorted(root.glob("*/*/*"))
+            if p.is_dir() and not any(part.startswith(".") for part in p.relative_to(root).parts)]
 
 
 def input_hash(item: ScenarioInput, grid: Grid) -> str:

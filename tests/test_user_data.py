@@ -719,3 +719,26 @@ def test_two_roots_writing_one_output_never_delete_each_others_temporaries(tmp_p
         holder.kill()
         holder.wait()
     assert (in_flight / "000000.pcd").read_bytes() == b"being written"
+
+
+def test_typs_records_are_never_taken_for_scenarios_or_splits(tmp_path):
+    """typ's records of what simulate wrote sit in ``<domain>/.typ/written/<split>/``: the stages that
+    list ``<root>/<domain>/<split>/<scenario>`` (voxelize's inputs, simulate's stale outputs) and OPV2V
+    readers of a split folder see the scenarios alone."""
+    from tasks.simulate import stale_scenarios
+    from tasks.voxelize import plan_inputs
+    from typ.formats.opv2v import list_scenarios
+    from typ.io import atomic_path, record_path, write_manifest
+
+    sim = tmp_path / "sim"
+    for name in ("target_train_0000", "target_train_0001"):
+        with atomic_path(sim / "target" / "train" / name, stage="simulate") as tmp:
+            tmp.mkdir()
+            write_manifest(tmp, "simulate", {"key": name})
+    assert record_path(sim / "target" / "train" / "target_train_0000").is_file()
+    assert (sim / "target" / ".typ" / "written" / "train").is_dir()
+    assert [(i.dataset, i.split, i.folder.name) for i in plan_inputs(sim)] == [
+        ("target", "train", "target_train_0000"), ("target", "train", "target_train_0001")]
+    assert [p.name for p in list_scenarios(sim / "target" / "train")] == ["target_train_0000", "target_train_0001"]
+    assert stale_scenarios([], sim) == [sim / "target" / "train" / "target_train_0000",
+                                        sim / "target" / "train" / "target_train_0001"]
