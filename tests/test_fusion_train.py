@@ -37,6 +37,12 @@ def setup(tmp_path_factory):
     return cfg, Inputs(list(FusionDataset(root, lidar_range=cfg.detector.lidar_range)), cfg)
 
 
+
+def _run_dir(folder):
+    """The one run folder of checkpoints under ``folder`` (not typ's records of them, ``.typ/``)."""
+    (run,) = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    return run
+
 def test_learning_rate_warms_up_then_decays_to_a_hundredth():
     lrs = [detector_learning_rate(1.0, s, 100, "cosine", 0.1) for s in range(100)]
     assert lrs[0] == pytest.approx(0.1) and lrs[9] == pytest.approx(1.0)
@@ -48,7 +54,7 @@ def test_learning_rate_warms_up_then_decays_to_a_hundredth():
 def test_training_resumes_from_its_last_checkpoint(setup, tmp_path):
     cfg, inputs = setup
     whole = train("attfuse", cfg, inputs, steps=3, out=tmp_path, name="run")
-    ckpts = checkpoints(next((tmp_path / "checkpoints" / "run").iterdir()))
+    ckpts = checkpoints(_run_dir(tmp_path / "checkpoints" / "run"))
     assert [s for s, _ in ckpts] == [2, 3]
     ckpts[-1][1].unlink()                                        # as if killed after step 2
     resumed = train("attfuse", cfg, inputs, steps=3, out=tmp_path, name="run")
@@ -65,7 +71,7 @@ def test_batchnorm_statistics_are_the_training_loops_own(setup, tmp_path):
     the stage once did, makes them differ."""
     cfg, inputs = setup
     trained = train("late", cfg, inputs, steps=3, out=tmp_path, name="bn")
-    last = torch.load(checkpoints(next((tmp_path / "checkpoints" / "bn").iterdir()))[-1][1], weights_only=False)
+    last = torch.load(checkpoints(_run_dir(tmp_path / "checkpoints" / "bn"))[-1][1], weights_only=False)
     for k, v in trained.model.state_dict().items():
         assert torch.equal(v, last["model"][k]), k
     assert any("running_mean" in k for k in last["model"])

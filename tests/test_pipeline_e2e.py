@@ -105,7 +105,8 @@ def test_repro_writes_readable_outputs(project):
     from typ.store import list_scenes, read_scene_voxels
 
     proj, env, _ = project
-    scenarios = sorted((proj / "data" / "sim").glob("*/*/*"))
+    scenarios = sorted(p for p in (proj / "data" / "sim").glob("*/*/*")   # not typ's records, <domain>/.typ/
+                       if not any(part.startswith(".") for part in p.relative_to(proj / "data" / "sim").parts))
     assert [s.name for s in scenarios] == ["real_cav_test_0000", "real_cav_train_0000", "source_test_0000",
                                            "source_train_0000", "target_pretrain_0000", "target_test_0000",
                                            "target_train_0000", "target_val_0000"]

@@ -742,3 +742,36 @@ def test_typs_records_are_never_taken_for_scenarios_or_splits(tmp_path):
     assert [p.name for p in list_scenarios(sim / "target" / "train")] == ["target_train_0000", "target_train_0001"]
     assert stale_scenarios([], sim) == [sim / "target" / "train" / "target_train_0000",
                                         sim / "target" / "train" / "target_train_0001"]
+
+
+def test_a_hard_link_to_a_users_file_in_what_typ_wrote_follows_the_users_edits(tmp_path):
+    """simulate imports a real scenario's files as hard links: the user editing their file (one inode,
+    two names) does not make typ's folder someone else's, and deleting typ's folder keeps the user's
+    file with its edits. A file whose every name is inside typ's folder is typ's to fingerprint whole."""
+    from typ.io import atomic_path, remove_written, write_manifest, written_by
+
+    theirs = tmp_path / "dataset" / "000000.pcd"
+    theirs.parent.mkdir()
+    theirs.write_bytes(b"the user's points")
+    folder = tmp_path / "sim" / "target" / "train" / "scen"
+    with atomic_path(folder, stage="simulate") as tmp:
+        (tmp / "1").mkdir(parents=True)
+        os.link(theirs, tmp / "1" / "000000.pcd")
+        (tmp / "1" / "000000.yaml").write_text("lidar_pose: [0, 0, 0, 0, 0, 0]\n")
+        os.link(tmp / "1" / "000000.yaml", tmp / "1" / "copy.yaml")   # both names inside typ's folder
+        write_manifest(tmp, "simulate", {})
+    assert written_by(folder, "simulate")
+    with open(theirs, "r+b") as f:    # edited in place where the user keeps it: the same inode
+        f.write(b"THE")
+    assert written_by(folder, "simulate")
+    with open(folder / "1" / "copy.yaml", "a") as f:   # typ's own file changed: no longer provably typ's
+        f.write("# mine now\n")
+    assert not written_by(folder, "simulate") and not remove_written(folder, "simulate")
+    assert folder.is_dir() and theirs.read_bytes() == b"THE user's points"
+    with atomic_path(tmp_path / "sim" / "target" / "train" / "scen2", stage="simulate") as tmp:
+        tmp.mkdir()
+        os.link(theirs, tmp / "000000.pcd")
+        write_manifest(tmp, "simulate", {})
+    theirs.write_bytes(b"rewritten in place")   # truncated and written: still one inode
+    assert remove_written(tmp_path / "sim" / "target" / "train" / "scen2", "simulate")
+    assert theirs.read_bytes() == b"rewritten in place"

@@ -105,7 +105,11 @@ def record_path(path: str | os.PathLike) -> Path:
 
 def _fingerprint(path: Path) -> dict | None:
     """``path``'s inode and a digest of its whole tree, not following links: each entry's relative
-    name, kind, size, modification time and inode. None when nothing (or a link) is there."""
+    name, kind, size, modification time and inode. None when nothing (or a link) is there.
+
+    A file with names outside the tree (a hard link, as simulate imports a real scenario's clouds)
+    counts by name, kind and inode alone: its bytes are the user's to change where they keep them,
+    and deleting typ's name for it loses nothing (the other name keeps them)."""
     try:
         top = os.lstat(path)
     except OSError:
@@ -113,23 +117,31 @@ def _fingerprint(path: Path) -> dict | None:
     if stat.S_ISLNK(top.st_mode):
         return None
     h = hashlib.sha256()
-
-    def add(rel: str, info: os.stat_result) -> None:
-        h.update(f"{rel}\0{stat.S_IFMT(info.st_mode)}\0{info.st_size}\0{info.st_mtime_ns}\0{info.st_ino}\n"
-                 .encode(errors="surrogateescape"))
-
-    if not stat.S_ISDIR(top.st_mode):
-        add("", top)
-    else:  # a folder's own times change with a rename on some file systems; what it holds says all
-        h.update(f"{top.st_ino}\n".encode())
+    entries = [("", top)]
+    if stat.S_ISDIR(top.st_mode):
+        entries = []
         for folder, dirs, files in os.walk(path):  # links to folders come in dirs and are not walked
             dirs.sort()
             for name in sorted(dirs + files):
                 full = os.path.join(folder, name)
                 try:
-                    add(os.path.relpath(full, path), os.lstat(full))
+                    entries.append((os.path.relpath(full, path), os.lstat(full)))
                 except OSError:
-                    add(os.path.relpath(full, path), top)  # gone while walking: cannot match a record
+                    entries.append((os.path.relpath(full, path), None))  # gone while walking: cannot match
+        # a folder's own times change with a rename on some file systems; what it holds says all
+        h.update(f"{top.st_ino}\n".encode())
+    names: dict[int, int] = {}
+    for _, info in entries:
+        if info is not None and stat.S_ISREG(info.st_mode):
+            names[info.st_ino] = names.get(info.st_ino, 0) + 1
+    for rel, info in entries:
+        if info is None:
+            h.update(f"{rel}\0gone\n".encode(errors="surrogateescape"))
+        elif stat.S_ISREG(info.st_mode) and info.st_nlink > names[info.st_ino]:
+            h.update(f"{rel}\0{stat.S_IFMT(info.st_mode)}\0shared\0{info.st_ino}\n".encode(errors="surrogateescape"))
+        else:
+            h.update(f"{rel}\0{stat.S_IFMT(info.st_mode)}\0{info.st_size}\0{info.st_mtime_ns}\0{info.st_ino}\n"
+                     .encode(errors="surrogateescape"))
     return {"ino": top.st_ino, "tree": h.hexdigest()}
 
 
