@@ -59,3 +59,19 @@ def test_interval_and_seconds_helpers():
     assert stage_seconds({"seconds_total": 3, "seconds_training": 9}) == 3.0
     assert stage_seconds({"x": {"seconds_training": 2.5}, "y": {"z": {"seconds_training": 1.5}}}) == 4.0
     assert stage_seconds({"count": 3}) is None
+
+
+def test_a_fusion_method_the_registry_gains_gets_its_row(monkeypatch):
+    """Rows follow the fusion registry's order; a method added there (or one only an older run's
+    metrics name) gets a row of its own instead of an error."""
+    from typ import report
+
+    monkeypatch.setattr(report, "FUSION_METHODS", (*report.FUSION_METHODS[:2], "newfuse", *report.FUSION_METHODS[2:]))
+    cell = lambda v: {"ap50": {"overall": {"value": v, "low": v - 0.1, "high": v + 0.1}}}  # noqa: E731
+    table1 = {m: {"oracle": cell(0.5), "generated": cell(0.4)} for m in ("late", "oldfuse", "newfuse", "none")}
+    lines = report._fusion({"fusion": {"table1": table1, "table3": {"newfuse": {"scratch": {"1": cell(0.3)}}}}})
+    rows = [line.split("|")[1].strip() for line in "\n".join(lines).splitlines() if line.startswith("| ") and "[" in line]
+    assert rows == ["No fusion", "newfuse", "Late", "oldfuse", "newfuse"]
+    ssc = report._ssc({"tables": {"perfect": {m: {"iou": cell(0.2)["ap50"]["overall"]} for m in ("attfuse", "newfuse")}}})
+    assert [line.split("|")[1].strip() for line in "\n".join(ssc).splitlines()
+            if line.startswith("| ") and "[" in line] == ["newfuse", "AttFuse"]

@@ -10,7 +10,7 @@ import json
 import subprocess
 from pathlib import Path
 
-from typ.config import Config
+from typ.config import FUSION_METHODS, Config
 from typ.io import write_text
 from typ.metrics.intervals import Interval
 from typ.reporting import markdown_table
@@ -23,6 +23,12 @@ GENERATION_ROWS = {"generated": "what `generate` writes", "cast": "cast view (on
 GENERATION_KEYS = (("iou", "IoU"), ("iou_above_ground", "above ground"), ("object_hit_rate", "hit rate"),
                    ("jsd_r2dm", "JSD"))
 FUSION_NAMES = {"none": "No fusion", "early": "Early", "late": "Late", "attfuse": "AttFuse", "v2xvit": "V2X-ViT"}
+
+
+def fusion_order(method: str) -> tuple[int, str]:
+    """Where a fusion method's row goes: the registry's order (``typ.config.FUSION_METHODS``), a name
+    it does not hold (metrics of an older run) after them by name; never an error."""
+    return (FUSION_METHODS.index(method), "") if method in FUSION_METHODS else (len(FUSION_METHODS), method)
 PRETRAIN_NAMES = {"scratch": "scratch", "colwaymo": "generated target", "source": "source sim"}
 
 
@@ -94,7 +100,7 @@ def _fusion(evaluate: dict) -> list[str]:
              f"real_cav/test, {f.get('test_frames', '?')} frames of {f.get('test_scenarios', '?')} scenarios, "
              f"{f.get('seeds', '?')} seed(s); full tables, ranges and robustness: [fusion.md](fusion.md).", ""]
     rows = []
-    for method, row in sorted(f["table1"].items(), key=lambda kv: list(FUSION_NAMES).index(kv[0])):
+    for method, row in sorted(f["table1"].items(), key=lambda kv: fusion_order(kv[0])):
         ap = {data: (cell or {}).get("ap50", {}).get("overall") for data, cell in row.items()}
         rows.append([FUSION_NAMES.get(method, method), iv(ap.get("oracle") or ap.get("ego"), 2),
                      iv(ap.get("generated"), 2)])
@@ -104,7 +110,7 @@ def _fusion(evaluate: dict) -> list[str]:
                      key=lambda c: (c == "all", int(c) if c.isdigit() else 0))
     if t3:
         table = []
-        for method, rows in sorted(t3.items(), key=lambda kv: list(FUSION_NAMES).index(kv[0])):
+        for method, rows in sorted(t3.items(), key=lambda kv: fusion_order(kv[0])):
             for i, source in enumerate(s for s in PRETRAIN_NAMES if s in rows):
                 table.append([FUSION_NAMES.get(method, method) if i == 0 else "", PRETRAIN_NAMES[source],
                               *(iv((rows[source].get(c) or {}).get("ap50", {}).get("overall"), 2) for c in columns)])
@@ -123,7 +129,7 @@ def _ssc(ssc: dict | None) -> list[str]:
     rows = [[FUSION_NAMES.get(method, method),
              *(f"{iv(tables[d][method].get('iou'), 2)} / {iv(tables[d][method].get('miou'), 2)}"
                if method in tables[d] else "—" for d in data)]
-            for method in sorted({m for d in data for m in tables[d]}, key=list(FUSION_NAMES).index)]
+            for method in sorted({m for d in data for m in tables[d]}, key=fusion_order)]
     lines.append(markdown_table(["method", *data], rows))
     return lines
 
