@@ -37,7 +37,7 @@ from tasks.scene_stage import SceneStage
 from typ.config import Config, SimulateConfig, SourceConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import check_root, check_scenario, list_agents, write_scene
-from typ.io import SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, read_json_or_none, write_manifest
+from typ.io import SCENARIO_MANIFEST, atomic_path, code_digest, hash_obj, hidden_below, read_json_or_none, write_manifest
 import typ.formats.opv2v
 import typ.formats.pcd
 import typ.geometry
@@ -241,7 +241,7 @@ def stale_scenarios(jobs: list, out: Path) -> list[Path]:
     split shrank, or someone else's files): the stage deletes those it wrote."""
     wanted = {job.folder(out) for job in jobs}
     return sorted(p for p in out.glob("*/*/*")   # hidden names: temporaries, typ's records (<domain>/.typ/)
-                  if p not in wanted and not any(part.startswith(".") for part in p.relative_to(out).parts))
+                  if p not in wanted and not hidden_below(p, out))
 
 
 def _job_state(job: ScenarioJob | ImportJob | IngestJob, out: Path) -> tuple[Path, str, dict, dict | None]:

@@ -23,7 +23,7 @@ from typ.formats.opv2v import list_agents, list_timestamps, read_scene, scenario
 import typ.formats.opv2v
 import typ.store
 import typ.voxel
-from typ.io import code_digest, hash_files
+from typ.io import code_digest, hash_files, hidden_below
 from typ.sensors import mount_height
 from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels
 from typ.voxel import Grid, box_map, voxelize
@@ -54,7 +54,7 @@ def plan_inputs(root: Path) -> list[ScenarioInput]:
     """Scenario folders ``root/<dataset>/<split>/<scenario>`` (hidden names excluded at every level:
     temporaries, and typ's records of what simulate wrote, ``<dataset>/.typ/``)."""
     return [ScenarioInput(p.parent.parent.name, p.parent.name, p) for p in sorted(root.glob("*/*/*"))
-            if p.is_dir() and not any(part.startswith(".") for part in p.relative_to(root).parts)]
+            if p.is_dir() and not hidden_below(p, root)]
 
 
 def input_hash(item: ScenarioInput, grid: Grid) -> str:

@@ -92,6 +92,12 @@ STATE_DIR = ".typ"
 _RECORD_MAX_BYTES = 64 * 1024
 
 
+def hidden_below(path: str | os.PathLike, root: str | os.PathLike) -> bool:
+    """Whether a part of ``path`` below ``root`` is hidden: a temporary, or typ's own state
+    (:data:`STATE_DIR`, where its records and locks sit beside what it wrote)."""
+    return any(part.startswith(".") for part in Path(path).relative_to(root).parts)
+
+
 def record_path(path: str | os.PathLike) -> Path:
     """Where typ keeps its record of ``path`` (:func:`written_by`): one folder up, in the :data:`STATE_DIR`
     beside ``path``'s folder (``a/b/c`` -> ``a/.typ/written/b/c.json``), where the lock of an output

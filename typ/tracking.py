@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Iterator
 
 from typ.config import Config, flatten, as_dict
-from typ.io import hash_obj
+from typ.io import hash_obj, hidden_below
 
 PARENT_ENV = "TYP_PARENT_RUN_ID"
 log = logging.getLogger(__name__)
@@ -348,7 +348,7 @@ def listing_digest(path: str | Path) -> tuple[str, dict]:
     """
     path = Path(path)
     files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file()
-                                                 and not any(part.startswith(".") for part in p.relative_to(path).parts))
+                                                 and not hidden_below(p, path))
     listing = [(p.name if p == path else str(p.relative_to(path)), p.stat().st_size) for p in files]
     return hash_obj(listing)[:16], {"files": len(listing), "bytes": sum(size for _, size in listing)}
 
