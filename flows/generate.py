@@ -9,11 +9,12 @@ from prefect import flow
 from flows.common import per_scene_stage
 from pipelines.pipeline_typ import TYPPipeline
 from tasks import generate as stage
-from tasks.ingest import MOUNT_HEIGHT, read_frames, write_single_agent
+from tasks.ingest import READERS, read_frames, write_single_agent
 from tasks.scene_stage import SceneStage
 from typ.config import GenerateSet, load_config
 from typ.errors import TypError
 from typ.io import hash_files, output_lock
+from typ.sensors import resolve
 
 STAGE = "generate"
 
@@ -70,7 +71,9 @@ def generate_external(fmt: str, input_path: Path, out: Path, *, root: Path, para
     # generate.compose applies as in the stage: hybrid and cast views cast the dataset's LiDAR
     # preset (typ.sensors), which the single-agent yaml names
     generator = load_generator(root, cfg)
-    generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: MOUNT_HEIGHT[fmt]})
+    # the written yamls name their LiDAR; a yaml without one is the format's (or --sensor's) preset
+    lidar = resolve(sensor or READERS[fmt].preset, where="typ generate", field="--sensor")
+    generator = dataclasses.replace(generator, mount_height={**generator.mount_height, fmt: lidar.mount_height})
     gset = GenerateSet(dataset=fmt, split="frames", references="vehicles")
     with output_lock(STAGE, out):
         folders = write_single_agent(read_frames(fmt, input_path, sensor=sensor), out / "single_agent" / fmt,

@@ -79,8 +79,9 @@ class DatasetScenario:
 
     def __iter__(self) -> Iterator[Scene]:
         reader = READERS[self.fmt]
+        lift = reader.lift(self.lidar)
         for stamp, scene in enumerate(reader.frames(self)):
-            scene = to_sensor_frame(scene, SENSOR_HEIGHT[self.fmt])
+            scene = to_sensor_frame(scene, lift)
             # stamps that are not the files' order (nuScenes, KITTI): number the frames as they come
             yield dataclasses.replace(scene, scenario=self.name,
                                       timestamp=scene.timestamp if reader.own_timestamps else f"{stamp:06d}")
@@ -299,8 +300,21 @@ class Reader:
     estimate: Callable[[DatasetScenario], str] | None = None
 
     @property
+    def name(self) -> str:
+        return next(name for name, reader in READERS.items() if reader is self)
+
+    @property
     def preset(self) -> str:
-        return self.sensor or next(name for name, reader in READERS.items() if reader is self)
+        return self.sensor or self.name
+
+    def lift(self, lidar: str) -> float:
+        """Height of ``lidar`` (a preset name) above the frame this format's points come in: its
+        mount height for a vehicle-frame format, else 0 (the points are in the LiDAR's own frame).
+        Looked up when a scenario is read, so a reader whose LiDAR is named per source (a preset
+        not of its own name) imports and lists without one."""
+        if not self.vehicle_frame:
+            return 0.0
+        return resolve(lidar, where=f"the {self.name} reader (tasks/ingest.py)", field="sensor").mount_height
 
 
 #: every single-agent format, by name (``simulate.sources.<domain>.format``, ``typ generate --format``)
@@ -317,11 +331,6 @@ READERS: dict[str, Reader] = {
                      estimate=_estimate_odometry_sensor),
 }
 FORMATS = tuple(READERS)
-#: each dataset's LiDAR height above the road in the frame the scenarios are written in (the
-#: voxel grid's z is relative to it): its preset's, with the source (typ.sensors.presets)
-MOUNT_HEIGHT = {fmt: resolve(reader.preset).mount_height for fmt, reader in READERS.items()}
-#: height of the LiDAR above the frame its points come in: 0 where that is the LiDAR's own
-SENSOR_HEIGHT = {fmt: MOUNT_HEIGHT[fmt] if READERS[fmt].vehicle_frame else 0.0 for fmt in FORMATS}
 
 
 @dataclass(frozen=True)

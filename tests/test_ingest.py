@@ -385,14 +385,37 @@ def test_the_config_offers_exactly_the_registered_readers():
     """``simulate.sources.<domain>.format`` and ``typ generate --format`` take the reader registry's
     names; each reader's LiDAR is the preset of its name, or the one it names (kitti-odometry:
     KITTI's HDL-64E, when a drive's scans are not estimated or named another)."""
-    from tasks.ingest import MOUNT_HEIGHT, READERS
+    from tasks.ingest import READERS
     from typ.config import SINGLE_AGENT_FORMATS, SOURCE_FORMATS
     from typ.sensors import resolve
 
     assert tuple(READERS) == SINGLE_AGENT_FORMATS and SOURCE_FORMATS == SINGLE_AGENT_FORMATS + ("opv2v",)
     assert {name: r.preset for name, r in READERS.items()} == {"kitti": "kitti", "nuscenes": "nuscenes",
                                                                "waymo": "waymo", "kitti-odometry": "kitti"}
-    assert MOUNT_HEIGHT == {name: resolve(r.preset).mount_height for name, r in READERS.items()}
+    assert all(resolve(r.preset).mount_height > 0 for r in READERS.values())   # every reader resolves a sensor
+
+
+def test_a_reader_whose_lidar_is_named_per_source_needs_no_preset_of_its_name(monkeypatch):
+    """A new vehicle-frame format whose LiDAR typ has no preset of the format's name: the module
+    imports and lists it (heights are looked up when a scenario is read); a scenario that names a
+    preset is lifted by that preset's height, one that names none is a named error."""
+    from tasks.ingest import READERS, Reader
+    from typ.sensors import SENSORS
+
+    ego = AgentView("ego", np.array([[1.0, 2.0, 0.5, 0.1]], np.float32), np.eye(4),
+                    boxes=np.array([[5.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0]]), box_labels=("car",),
+                    box_ids=np.array([0]))
+    frames = lambda scenario: iter([Scene(scenario.name, "7", {"ego": ego})])   # noqa: E731
+    monkeypatch.setitem(READERS, "fleet-logs", Reader(lambda root: ([], {}), frames, "logs/*.bin", vehicle_frame=True))
+    named = list(DatasetScenario("fleet-logs", "drive_a", (), sensor="nuscenes"))
+    lift = SENSORS["nuscenes"].mount_height
+    assert [s.timestamp for s in named] == ["000000"]
+    view = named[0].ego
+    np.testing.assert_allclose(view.points[:, 2], [0.5 - lift], rtol=1e-6)
+    np.testing.assert_allclose(view.boxes[:, 2], [0.8 - lift])
+    np.testing.assert_allclose(view.pose[:3, 3], [0.0, 0.0, lift])
+    with pytest.raises(TypError, match=r"fleet-logs reader.*sensor.*fleet-logs"):
+        list(DatasetScenario("fleet-logs", "drive_b", ()))
 
 
 def test_frames_are_numbered_in_time_order_when_their_stamps_differ_in_length(tmp_path):

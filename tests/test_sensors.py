@@ -159,13 +159,17 @@ def test_beam_heights_must_match_the_beams():
         dataclasses.replace(SENSORS["nuscenes"], beam_heights_m=(0.1,))
 
 
-def test_ingest_takes_its_heights_from_the_presets():
-    from tasks.ingest import MOUNT_HEIGHT, READERS, SENSOR_HEIGHT
+def test_ingest_lifts_vehicle_frame_points_by_their_lidars_height():
+    """Waymo's points come in the vehicle frame, on the ground: lifted by the LiDAR's height, the
+    preset's the scenario names (the format's own, or one named per source); the others come in
+    the LiDAR's own frame."""
+    from tasks.ingest import READERS
 
-    assert MOUNT_HEIGHT == {fmt: SENSORS[r.preset].mount_height for fmt, r in READERS.items()}
-    # Waymo's points come in the vehicle frame, on the ground: lifted by the LiDAR's height
-    assert SENSOR_HEIGHT == {"kitti": 0.0, "nuscenes": 0.0, "waymo": SENSORS["waymo"].mount_height,
-                             "kitti-odometry": 0.0}
+    assert {fmt: r.lift(r.preset) for fmt, r in READERS.items()} == {
+        "kitti": 0.0, "nuscenes": 0.0, "waymo": SENSORS["waymo"].mount_height, "kitti-odometry": 0.0}
+    assert READERS["waymo"].lift("nuscenes") == SENSORS["nuscenes"].mount_height
+    with pytest.raises(TypError, match=r"the waymo reader \(tasks/ingest.py\).*sensor.*no-such-lidar"):
+        READERS["waymo"].lift("no-such-lidar")
 
 
 # ---------------------------------------------------------------- the presets against real frames
