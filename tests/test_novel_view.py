@@ -251,8 +251,8 @@ def test_typ_novel_view_end_to_end(tmp_path, tiny_generator):
     root.mkdir()
     shutil.copyfile(REPO / "params.yaml", root / "params.yaml")
     tiny_generator.pipe.save_pretrained(generator_dir(root / "artifacts" / "selftrain", 0))
-    out = tmp_path / "report"
-    assert main(["--root", str(root), "novel-view", "--format", "kitti-odometry", "--input", str(NUSCENES),
+    out, drive = tmp_path / "report", small_copy(NUSCENES, tmp_path / "drive", 3)   # the map: scans 0-2
+    assert main(["--root", str(root), "novel-view", "--format", "kitti-odometry", "--input", str(drive),
                  "--out", str(out), "--max-pairs", "2", "--methods", "copy,resim,cast,cast_no_typ,map_oracle"]) == 0
     doc = json.loads((out / "novel_view.json").read_text())
     methods = ["copy", "resim", "cast", "cast_no_typ", "map_oracle"]
@@ -267,7 +267,7 @@ def test_typ_novel_view_end_to_end(tmp_path, tiny_generator):
     text = (out / "novel_view.md").read_text()
     assert "LiDAR4D" in text and "## 0-10 m" in text and "pair_0000_0002.png" in text
     for bad in (["--frames", "3:2"], ["--max-pairs", "-1"], ["--methods", "copy,oracle"]):
-        assert main(["--root", str(root), "novel-view", "--format", "kitti-odometry", "--input", str(NUSCENES),
+        assert main(["--root", str(root), "novel-view", "--format", "kitti-odometry", "--input", str(drive),
                      "--out", str(tmp_path / "bad"), "--no-pictures", *bad]) == 2
     assert not (tmp_path / "bad").exists()
 

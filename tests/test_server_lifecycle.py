@@ -381,10 +381,12 @@ def test_a_typ_command_reports_no_usage_to_mlflow_or_prefect(tmp_path):
 #: how long a server may outlive a typ process killed by SIGKILL (it gets SIGTERM at once, then shuts down)
 AFTER_KILL = 30.0
 
-#: what ``typ run STAGE --runner dask`` starts before its stage's work: the CLI's environment, typ's local
-#: Prefect server for the workers (flows.common.api_for_workers) and the LocalCluster of its task runner;
-#: then it reports its processes and the API, and waits to be killed
-DASK_RUN = """
+#: the two other ways a ``typ run`` starts servers, in one process (one Python start, one kill): a
+#: ``typ run STAGE`` without PREFECT_API_URL gets Prefect's own temporary server at its first client;
+#: ``typ run STAGE --runner dask`` starts typ's local Prefect server for its workers
+#: (flows.common.api_for_workers) and the LocalCluster of its task runner. It reports every process
+#: it started and both APIs, then waits to be killed
+SERVERS = """
 import json, os, sys, time
 from pathlib import Path
 
@@ -394,6 +396,13 @@ if __name__ == "__main__":
     from cli.main import _setup_env
 
     _setup_env(Path(sys.argv[1]))
+    from prefect.client.orchestration import get_client
+
+    with get_client(sync_client=True) as client:
+        client.hello()
+    from prefect.server.api.server import SubprocessASGIServer
+
+    temporary = SubprocessASGIServer._instances[None]
     from flows.common import api_for_workers, runner
 
     with api_for_workers():
@@ -402,30 +411,11 @@ if __name__ == "__main__":
         with runner(2, "dask") as task_runner:
             task_runner.client.run(os.getpid)   # the cluster starts with its first use
             pids = [p.pid for p in psutil.Process().children(recursive=True)]
-            json.dump({"api": PREFECT_API_URL.value(), "pids": pids}, open(sys.argv[2] + ".tmp", "w"))
+            assert temporary.server_process.pid in pids
+            json.dump({"apis": [temporary.api_url, PREFECT_API_URL.value()], "pids": pids},
+                      open(sys.argv[2] + ".tmp", "w"))
             os.rename(sys.argv[2] + ".tmp", sys.argv[2])
             time.sleep(600)
-"""
-
-#: what a ``typ run STAGE`` without PREFECT_API_URL does first: the CLI's environment, then Prefect's
-#: own temporary server at the first client; reports that server and waits to be killed
-TEMPORARY_SERVER = """
-import json, os, sys, time
-from pathlib import Path
-
-from cli.main import _setup_env
-
-_setup_env(Path(sys.argv[1]))
-from prefect.client.orchestration import get_client
-
-with get_client(sync_client=True) as client:
-    client.hello()
-from prefect.server.api.server import SubprocessASGIServer
-
-server = SubprocessASGIServer._instances[None]
-json.dump({"api": server.api_url, "pids": [server.server_process.pid]}, open(sys.argv[2] + ".tmp", "w"))
-os.rename(sys.argv[2] + ".tmp", sys.argv[2])
-time.sleep(600)
 """
 
 
@@ -446,22 +436,23 @@ def _kill_left(pids: list[int]) -> None:
             pass
 
 
-@pytest.mark.parametrize("script", ["dask run", "temporary server"])
-def test_kill_9_leaves_no_server_behind(tmp_path, script):
-    """SIGKILL runs no code of typ's: each server (and Dask worker) must end because its parent did."""
+def test_kill_9_of_a_run_leaves_neither_server_nor_dask_worker_behind(tmp_path):
+    """SIGKILL runs no code of typ's: Prefect's temporary server, typ's local server for Dask
+    workers and the workers themselves must each end because their parent did."""
     report = tmp_path / "started.json"
-    code = {"dask run": DASK_RUN, "temporary server": TEMPORARY_SERVER}[script]
-    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path), str(report)], cwd=REPO, env=_env(tmp_path),
+    proc = subprocess.Popen([sys.executable, "-c", SERVERS, str(tmp_path), str(report)], cwd=REPO, env=_env(tmp_path),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     started = {"pids": []}
     try:
         started = _wait("the servers to start", lambda: (report.is_file() and json.loads(report.read_text()))
                         or (proc.poll() is not None and pytest.fail(proc.stdout.read()[-3000:])), timeout=300)
-        assert started["pids"] and not _port_free(_port_of(started["api"]))
+        ports = {_port_of(api) for api in started["apis"]}
+        assert len(ports) == 2 and len(started["pids"]) >= 4   # two servers, two Dask workers (and their nanny)
+        assert not any(_port_free(port) for port in ports)
         os.kill(proc.pid, signal.SIGKILL)   # the typ process alone, as `kill -9 PID` does
         proc.wait(30)
         _wait("the servers and workers to end after their parent", lambda: _gone(started["pids"]), timeout=AFTER_KILL)
-        assert _port_free(_port_of(started["api"]))
+        assert all(_port_free(port) for port in ports)
     finally:
         _stop(proc)
         _kill_left(started["pids"])
