@@ -26,7 +26,7 @@ from tasks.generate import EGO_CAR_LWH  # noqa: E402
 from tasks.selftrain import generator_dir  # noqa: E402
 from tasks.stage2 import own_car_box  # noqa: E402
 from typ import castview  # noqa: E402
-from typ.config import CastConfig, as_dict, load_config  # noqa: E402
+from typ.config import COMPOSE, CastConfig, as_dict, load_config  # noqa: E402
 from typ.resim import hybrid, hybrid_points  # noqa: E402
 from typ.sensors import on_beam_fractions  # noqa: E402
 from typ.sim.sensor import domain_spec  # noqa: E402
@@ -106,7 +106,7 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ROADSIDE_UNITS = 2
 NEAR_M = 0.5
 PARAMS = "params.yaml"   #: the params file typ generate reads (--params)
-COMPOSES = ("generated", "hybrid", "cast")
+COMPOSES = COMPOSE   #: every compose mode of the registry (typ.registry.COMPOSE_MODES)
 
 
 def real_frames(root: Path) -> None:

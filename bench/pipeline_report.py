@@ -344,7 +344,7 @@ def fusion_table(result: dict) -> str:
 
 def fusion_order() -> tuple[str, ...]:
     """The fusion methods in bench order (the registry's)."""
-    from models.registry import METHODS
+    from typ.registry import METHODS
 
     return tuple(METHODS)
 

@@ -14,6 +14,7 @@ from typ.config import load_config
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, read_scene, scenario_sensor, write_scene
 from typ.io import atomic_path, fit_name, write_manifest
+from typ.registry import COMPOSE_MODES
 from typ.viz import save_png
 
 
@@ -45,8 +46,9 @@ def edit_scenario(scenario: Path, timestamp: str, edit, out: Path, *, root: Path
     if agent not in agents:
         raise TypError(scenario, "--agent", f"one of {agents}", agent)
     scene = read_scene(scenario, timestamp, agents=[agent])
-    compose = compose or ("cast" if cfg.generate.compose == "cast" else "generated")
-    sensor = generator.sensor(scenario_sensor(scenario) or dataset) if compose == "cast" else None
+    # the stage's compose where typ edit can remake a footprint with it, else TYP's sample alone
+    compose = compose or (cfg.generate.compose if COMPOSE_MODES[cfg.generate.compose].editable else "generated")
+    sensor = generator.sensor(scenario_sensor(scenario) or dataset) if COMPOSE_MODES[compose].casts else None
     result = edit_view(scene.agents[agent], edit, generator, grid, seed, compose=compose, sensor=sensor,
                        cast=cfg.generate.cast)
     with atomic_path(target, stage=EDIT) as tmp:

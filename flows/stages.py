@@ -9,7 +9,7 @@ Adding a stage is a task module ``tasks/<name>.py``, a config block of the same 
 entry here: a stage with no flow module of its own runs through :mod:`flows.generic` (the task
 module's ``scene_stage`` or ``run``). A flow ``flows/<name>.py`` is for a stage that needs more.
 
-The method lists it draws come from the torch-free registries (:mod:`models.registry`, through
+The method lists it draws come from the torch-free registries (:mod:`typ.registry`, through
 :mod:`typ.config`), so building dvc.yaml imports no torch. No stage's flow imports this module,
 so it is no stage's code dep and editing it re-runs nothing by itself.
 """
@@ -69,7 +69,7 @@ def _sweep(name: str, x: str, x_label: str, title: str, methods) -> Plot:
 def stages() -> tuple[Stage, ...]:
     """Every stage in the order ``dvc repro`` runs them (the method and column lists come from
     the modules that own them)."""
-    from models.registry import PLOTTED_GENERATION_METHODS
+    from typ.registry import PLOTTED_GENERATION_METHODS
     from typ.config import FUSION_METHODS
 
     plotted = list(PLOTTED_GENERATION_METHODS)

@@ -22,8 +22,8 @@ import torch
 import diffusers
 from diffusers.schedulers.scheduling_utils import SchedulerMixin
 
-from models.registry import SAMPLERS
 from typ.errors import TypError
+from typ.registry import SAMPLERS
 
 __all__ = ["SCHEDULERS", "EpsModel", "make_scheduler", "sample"]
 
@@ -32,7 +32,7 @@ WHERE = "sampler"
 EpsModel = Callable[[torch.Tensor, torch.Tensor, Any, Any], torch.Tensor]
 """eps_model(x_t (B, ...), t (B,) int64, cond, adapter_features) -> ε̂ shaped like x_t."""
 
-#: the diffusers scheduler class and latent options of every sampler of :data:`models.registry.SAMPLERS`
+#: the diffusers scheduler class and latent options of every sampler of :data:`typ.registry.SAMPLERS`
 SCHEDULERS: dict[str, tuple[type[SchedulerMixin], dict[str, Any]]] = {
     name: (getattr(diffusers, spec.scheduler), dict(spec.latent)) for name, spec in SAMPLERS.items()}
 PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")

@@ -22,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 
+from typ import registry
 from typ.errors import TypError
 
 __all__ = ["SCHEDULES", "alphas_cumprod", "betas"]
@@ -171,16 +172,9 @@ def ramp(num_steps: int, *, beta_start: float = 1e-4, beta_end: float = 0.02, n:
     return reference[index]
 
 
-SCHEDULES: dict[str, Callable[..., np.ndarray]] = {
-    "constant": constant,
-    "linear": linear,
-    "quadratic": quadratic,
-    "cosine": cosine,
-    "sigmoid": sigmoid,
-    "hyperbolic": hyperbolic,
-    "time_dependent": time_dependent,
-    "ramp": ramp,
-}
+#: config name -> β(T), one function of this module per entry of :data:`typ.registry.SCHEDULES`
+SCHEDULES: dict[str, Callable[..., np.ndarray]] = {name: globals()[spec.function]
+                                                  for name, spec in registry.SCHEDULES.items()}
 
 
 def betas(name: str, num_steps: int, **kwargs: object) -> np.ndarray:

@@ -35,7 +35,6 @@ import models.schedules
 import models.time_embedding
 import typ.artifacts
 from models.pixel_ddpm import PixelDiffusion
-from models.registry import SAMPLERS
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.ddpm_data import (BevRepresentation, RangeRepresentation, Representation, Scan, data_key,  # noqa: F401
@@ -46,6 +45,7 @@ from typ import distributed
 from typ.artifacts import load_if_key, save_module
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
 from typ.io import atomic_path, code_digest, hash_obj
+from typ.registry import SAMPLERS
 
 STAGE = "ddpm"
 #: the code a trained model / a generated set depends on: part of their cache keys (typ.artifacts:
@@ -58,7 +58,7 @@ SAMPLE_BATCH = 32
 #: clip; diffusers' default for pixel models, which typ's latent samplers switch off). Without
 #: it an undertrained ε̂ at t near T, divided by √ᾱ_T ~ 0.006, throws the first estimates far
 #: outside the image range and the chain never recovers. Dynamic thresholding with a maximum of 1
-#: is the same clip for the multistep solvers (:attr:`models.registry.SamplerSpec.pixel`).
+#: is the same clip for the multistep solvers (:attr:`typ.registry.SamplerSpec.pixel`).
 PIXEL_CLIP = {name: spec.pixel for name, spec in SAMPLERS.items()}
 
 

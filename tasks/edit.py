@@ -31,6 +31,7 @@ from tasks.generate import EGO_CAR_LWH, Generator
 from typ.config import CastConfig
 from typ.errors import TypError
 from typ.geometry import points_in_boxes
+from typ.registry import COMPOSE_MODES
 from typ.resim import in_mask
 from typ.scene import AgentView
 from typ.voxel import Grid, box_map, voxelize
@@ -39,8 +40,8 @@ from typ.voxel import Grid, box_map, voxelize
 FOOTPRINT_MARGIN = 1.0
 #: what the manifest of an edited copy names as its writer (typ.io.write_manifest)
 STAGE = "edit"
-#: what an edited footprint is made of (module doc)
-COMPOSE = ("generated", "cast")
+#: what an edited footprint is made of (module doc): the compose modes that can remake one
+COMPOSE = tuple(name for name, mode in COMPOSE_MODES.items() if mode.editable)
 #: a real point counts as hidden behind an edited vehicle when its ray meets the box this far before it
 OCCLUSION_SLACK_M = 0.1
 
@@ -116,7 +117,7 @@ def edit_view(view: AgentView, edit: BoxEdit, generator: Generator, grid: Grid, 
         raise TypError("typ edit", "edits", "at least one of --remove, --move, --add", "none")
     if compose not in COMPOSE:
         raise TypError("typ edit", "--compose", f"one of {COMPOSE}", compose)
-    if compose == "cast" and sensor is None:
+    if COMPOSE_MODES[compose].casts and sensor is None:
         raise TypError("typ edit", "sensor", "the view's LiDAR (a SensorSpec), which a cast edit casts with", None)
     edited, old, new = edit_boxes(view, edit)
     touched = np.concatenate([old, new])

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from models.registry import PLOTTED_GENERATION_METHODS
 from tasks import evaluate_generation as gen
 from tasks import genscore, realism, selftrain
 from tasks.scene_stage import StageResult
 from typ.io import write_text
 from typ.metrics.intervals import Interval
+from typ.registry import PLOTTED_GENERATION_METHODS
 from typ.reporting import markdown_table
 
 LOG = logging.getLogger(__name__)

@@ -29,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from models.registry import GENERATION_METHODS
 from pipelines.pipeline_typ import TYPPipeline
 from tasks import genscore, realism, stage1, stage2
 from tasks.pairs import iter_pairs
 from tasks.selftrain import base_pipeline, resim_variant, variant_of, variants_to_run
 from typ.metrics.intervals import Interval
+from typ.registry import GENERATION_METHODS
 from typ.resim import coverage_mask, hybrid, hybrid_points
 from typ.voxel import Grid, voxelize
 

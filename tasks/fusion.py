@@ -45,7 +45,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from models.registry import METHODS, SINGLE_AGENT
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
@@ -55,6 +54,7 @@ from typ.config import FusionConfig
 from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
 from typ.io import SCENARIO_MANIFEST, read_json_or_none
+from typ.registry import METHODS, SINGLE_AGENT
 
 #: what pre-training set ``both`` is made of, in this order
 BOTH_PARTS = ("colwaymo", "source")

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from models.registry import METHODS
 from tasks.fusion import TABLE3_PAIRS
 from tasks.fusion_score import BANDS as SCORED_BANDS, IOU_THRESHOLDS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
+from typ.registry import COMPOSE_MODES, METHODS
 from typ.reporting import markdown_table
 
 #: the range bands and AP figures the scorer declares (tasks.fusion_score), with their headers
@@ -21,11 +21,7 @@ BANDS = tuple((band, "all" if band == "overall" else band.replace("-", "–")) f
 KEYS = tuple((key, f"AP@{threshold:g}") for key, threshold in IOU_THRESHOLDS.items())
 TABLE1_ROWS = {"ego": "ego's gt only", "oracle": "gt (oracle)", "generated": "TYP (generated)"}
 #: ``generate.compose`` values, as the report explains them
-COMPOSE_TEXT = {"generated": "TYP's sample alone",
-                "hybrid": "the ego's cloud re-simulated from the cooperating pose where the ego saw, TYP's sample "
-                          "elsewhere",
-                "cast": "one scene of the ego's surfaces where it saw and TYP's cells elsewhere, cast with the "
-                        "cooperating agent's LiDAR"}
+COMPOSE_TEXT = {name: mode.text for name, mode in COMPOSE_MODES.items()}
 PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "source": "source sim (OPV2V)",
             "both": "generated target + source sim"}
 

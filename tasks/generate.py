@@ -26,6 +26,7 @@ from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
 from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
 from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_manifest
+from typ.registry import COMPOSE_MODES
 from typ.scene import AgentView, Scene, vehicle_mask
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
@@ -165,7 +166,7 @@ def needs_sensor(pipe: TYPPipeline, compose: str) -> bool:
     cloud for a re-simulation-conditioned generator or a hybrid view, or to cast a cast view."""
     if compose not in COMPOSE:
         raise TypError("params.yaml", "generate.compose", f"one of {COMPOSE}", compose)
-    return pipe.conditions == 2 or compose in ("hybrid", "cast")
+    return pipe.conditions == 2 or COMPOSE_MODES[compose].casts
 
 
 def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: int, *,

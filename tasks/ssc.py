@@ -5,7 +5,7 @@ communication range, delay and pose noise as there) on V2VSSC's grid, each with 
 occupancy maps the simulate stage writes beside the clouds (:mod:`typ.ssc`).
 
 Networks (:func:`models.ssc.ssc_detector`, PointPillars with an occupancy head) are reached through
-the fusion-method registry (:data:`models.registry.METHODS`), as the detectors are:
+the fusion-method registry (:data:`typ.registry.METHODS`), as the detectors are:
 
 - ``single``: under :class:`models.fusion.NoFusion`, trained on every agent's own cloud against its
   own map. No fusion runs it on the ego's cloud; late fusion runs it on every agent in range and

@@ -8,13 +8,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.registry import METHODS, SINGLE_AGENT
 from models.ssc import SSC_LIDAR_RANGE
 from tasks.fusion_data import FusionDataset, FusionSample
 from typ.config import SscConfig
 from typ.errors import TypError
 from typ.io import hash_obj
 from typ.metrics.ssc import FIGURES as SSC_FIGURES, SSC_CLASSES
+from typ.registry import METHODS, SINGLE_AGENT
 from typ.ssc import SSC_GRID, occupancy_path, read_occupancy
 
 

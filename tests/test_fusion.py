@@ -366,7 +366,7 @@ def test_params_checking_reads_the_registry_without_torch():
     import subprocess
     import sys
 
-    code = ("import sys, typing, typ.config as c; from models.registry import METHODS, SAMPLERS; "
+    code = ("import sys, typing, typ.config as c; from typ.registry import METHODS, SAMPLERS; "
             "assert c.FUSION_METHODS == c.SSC_METHODS == tuple(METHODS); "
             "assert typing.get_args(c.Sampler) == tuple(SAMPLERS); "
             "assert not {'torch', 'diffusers'} & set(sys.modules), sorted(m for m in sys.modules if 'torch' in m)[:5]")

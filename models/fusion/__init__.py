@@ -4,8 +4,8 @@ Every method is a :class:`FusionModule` with one forward signature,
 ``module(pillars, *, agent_mask, transforms, time_delay=None, agent_types=None)``, and the hooks
 the benchmark needs: ``detections`` (head -> ego-frame boxes), ``message_bytes`` and
 ``message_bits`` (what a cooperating agent sends, and its quantisation), ``warm_start`` (from a
-trained single-agent detector). :data:`models.registry.METHODS` is the registry (torch-free, so
-the config reads it): each :class:`~models.registry.FusionMethod` names its module, display name,
+trained single-agent detector). :data:`typ.registry.METHODS` is the registry (torch-free, so
+the config reads it): each :class:`~typ.registry.FusionMethod` names its module, display name,
 inputs, training targets, message and whether it runs another method's network (no fusion runs
 late fusion's single-agent detector on the ego's cloud only, as OpenCOOD). Its order is the
 order of the tables; ``typ.config`` takes the allowed names from it. A new method is a file
@@ -36,7 +36,7 @@ from models.fusion.early import EarlyFusion
 from models.fusion.late import LateFusion
 from models.fusion.none import NoFusion
 from models.fusion.v2xvit import HeteroAgentAttention, PyramidWindowAttention, V2XViT, WindowAttention
-from models.registry import METHODS, SINGLE_AGENT, FusionMethod
+from typ.registry import METHODS, SINGLE_AGENT, FusionMethod
 
 __all__ = ["AttFuse", "BYTES_PER_BOX", "BYTES_PER_POINT", "EarlyFusion", "FusionMethod", "FusionModule",
            "HeteroAgentAttention", "LateFusion", "METHODS", "NoFusion", "PyramidWindowAttention", "SINGLE_AGENT",

@@ -14,10 +14,10 @@ from torch import nn
 
 from models.box_coder import AnchorBoxCoder
 from models.pointpillars import PointPillars
-from models.registry import METHODS, FusionMethod
 from models.warp import warp_bev, warp_valid_mask
 from typ.errors import TypError
 from typ.geometry import transform_points
+from typ.registry import METHODS, FusionMethod
 
 BYTES_PER_POINT = 16        # x, y, z, intensity as float32
 BYTES_PER_BOX = 32          # 7 box parameters and a score as float32

@@ -13,10 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from models.registry import SAMPLERS
-from models.schedules import SCHEDULES
 from typ.errors import TypError
 from typ.inputs import MiB
+from typ.registry import SAMPLERS, SCHEDULES
 
 PROFILES_FILE = Path(__file__).parent.parent / "profiles.yaml"
 PROFILES = ("tiny", "small", "paper")
@@ -25,7 +24,7 @@ MAX_PARAMS_BYTES = 1 * MiB
 DOMAINS = ("source", "target", "real_cav")
 #: ``simulate.sources`` value for a domain the embedded simulator makes
 SIMULATE = "simulate"
-#: the names of the registries (:mod:`models.registry`, :data:`models.schedules.SCHEDULES`)
+#: the names of the registries (:mod:`typ.registry`)
 Schedule = Literal[tuple(SCHEDULES)]
 Sampler = Literal[tuple(SAMPLERS)]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal, get_args
 
-from models.registry import METHODS
+from typ.registry import METHODS
 from typ.config.base import (BatchSize, Bound, Coordinate, Dropout, LearningRate, Length, Replicates, Seed, Steps,
                              TrainingSeeds, Width, _check_methods)
 from typ.config.data import MAX_SCENARIOS, CommRange
@@ -131,7 +131,7 @@ class AugmentConfig:
             raise TypError(where, f"{name}.scale", "[low, high] with 0 < low <= high", list(self.scale))
 
 
-#: the names of the fusion-method registry (``models.registry.METHODS``, torch-free) in its order
+#: the names of the fusion-method registry (``typ.registry.METHODS``, torch-free) in its order
 FUSION_METHODS = tuple(METHODS)
 
 

@@ -10,6 +10,7 @@ from typ.config.base import (LEVELS, MAX_ADAPTER_SCALE, MAX_NOISE_STD, BatchSize
                              LayersPerBlock, LearningRate, Length, NormGroups, Probability, Sampler, Schedule, Seed,
                              Steps, Timesteps, Views, Width, Workers)
 from typ.errors import TypError
+from typ.registry import COMPOSE_MODES
 
 FocalGamma = Annotated[float, Bound(0, 10, "a focal-loss exponent: TYP's is 2 (0: plain BCE)")]
 AdapterScale = Annotated[float, Bound(0, MAX_ADAPTER_SCALE, "a multiplier of the adapter's residuals: past it "
@@ -290,8 +291,8 @@ class CastConfig:
     carve: bool = True
 
 
-#: ``generate.compose``: what a reference view is made of (:class:`GenerateConfig`)
-COMPOSE = ("generated", "hybrid", "cast")
+#: ``generate.compose``: what a reference view is made of (:class:`GenerateConfig`), the registry's names
+COMPOSE = tuple(COMPOSE_MODES)
 
 
 @dataclass(frozen=True)

@@ -1,19 +1,22 @@
-"""The extensible kinds typ's config names, each declared once, without torch.
+"""The extensible kinds typ's config names, each declared once, torch-free, below the config.
 
 ``typ.config`` (and so ``typ check``, ``typ --help`` and the params schema) offers exactly the names
-of these tables, and the code that runs them reads the same entries:
+of these tables, and the code that runs them reads the same entries; nothing here imports torch,
+numpy or any layer above ``typ`` (the implementation an entry names is imported where it runs):
 
 - :data:`SAMPLERS`: the diffusion samplers, as diffusers schedulers (:mod:`models.samplers` builds
   them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
+- :data:`SCHEDULES`: the noise schedules, each the β(T) function of :mod:`models.schedules` it names.
 - :data:`METHODS`: the collaborative fusion methods of the detection and SSC benchmarks; each
   entry names its module class in its own file ``models/fusion/<name>.py`` (imported only when a
   module is built).
 - :data:`GENERATION_METHODS`: the reference-view methods and baselines ``evaluate`` scores
   (:mod:`tasks.evaluate_generation` runs them), with the rows and curves the reports give them.
+- :data:`COMPOSE_MODES`: what a generated reference view is made of (``generate.compose``,
+  ``typ generate --compose``, ``typ edit --compose``), with the sentence the reports give it.
 
-The noise schedules' table is :data:`models.schedules.SCHEDULES` (numpy only).
-A new sampler is one entry here; a new fusion method is its module and one entry here (plus a
-config block if it has options).
+A new sampler or schedule is one entry here (and, for a schedule, its function); a new fusion
+method is its module and one entry here (plus a config block if it has options).
 """
 from __future__ import annotations
 
@@ -42,6 +45,19 @@ SAMPLERS: dict[str, SamplerSpec] = {
                                {"thresholding": True, "sample_max_value": 1.0}),
     "unipc": SamplerSpec("UniPCMultistepScheduler", {}, {"thresholding": True, "sample_max_value": 1.0}),
 }
+
+
+@dataclass(frozen=True)
+class ScheduleSpec:
+    """One noise schedule: ``function`` the name of its β(T) in :mod:`models.schedules` (numpy),
+    which :data:`models.schedules.SCHEDULES` maps the config name to."""
+
+    function: str
+
+
+#: every noise schedule, by config name (LiDAR-DDPM's and the common ones)
+SCHEDULES: dict[str, ScheduleSpec] = {name: ScheduleSpec(name) for name in (
+    "constant", "linear", "quadratic", "cosine", "sigmoid", "hyperbolic", "time_dependent", "ramp")}
 
 
 @dataclass(frozen=True)
@@ -130,3 +146,24 @@ GENERATION_METHODS: dict[str, GenerationMethod] = {
 }
 #: the methods dvc.yaml's per-band and row-profile plots draw, in the report's order
 PLOTTED_GENERATION_METHODS = tuple(k for k, m in GENERATION_METHODS.items() if m.plotted)
+
+
+@dataclass(frozen=True)
+class ComposeMode:
+    """One way a reference view is composed: ``text`` what the reports say it is; ``casts``
+    whether it casts the reference LiDAR (through the dataset's sensor preset); ``editable``
+    whether ``typ edit`` can remake an edited footprint with it."""
+
+    text: str
+    casts: bool = False
+    editable: bool = False
+
+
+#: every compose mode, by config name (``generate.compose``)
+COMPOSE_MODES: dict[str, ComposeMode] = {
+    "generated": ComposeMode("TYP's sample alone", editable=True),
+    "hybrid": ComposeMode("the ego's cloud re-simulated from the cooperating pose where the ego saw, TYP's sample "
+                          "elsewhere", casts=True),
+    "cast": ComposeMode("one scene of the ego's surfaces where it saw and TYP's cells elsewhere, cast with the "
+                        "cooperating agent's LiDAR", casts=True, editable=True),
+}
