@@ -38,3 +38,20 @@ def test_compose_modes_reach_every_command_that_takes_one():
     assert all(COMPOSE_TEXT[n] == m.text and m.text for n, m in COMPOSE_MODES.items())
     for name in COMPOSE_MODES:   # every mode is a value params.yaml may give
         assert config_from_dict({"profile": "tiny", "generate": {"compose": name}}).generate.compose == name
+
+
+def test_the_stage_list_is_the_registrys_and_a_stage_without_a_declaration_is_named(monkeypatch):
+    """One ordered stage list: the config's and dvc.yaml's follow typ.registry.STAGES, kinds
+    included; a registered stage flows/stages.py does not declare is a named error, not a
+    pipeline that silently lacks it."""
+    from flows import stages
+    from typ.config import Config
+    from typ.errors import TypError
+    from typ.registry import STAGES, StageSpec
+
+    declared = stages.stages()
+    assert Config.STAGES == tuple(STAGES) == tuple(s.name for s in declared)
+    assert all((s.kind, s.torch) == (STAGES[s.name].kind, STAGES[s.name].torch) for s in declared)
+    monkeypatch.setitem(STAGES, "density", StageSpec("scoring", torch=False))
+    with pytest.raises(TypError, match=r"flows/stages.py.*undeclared \['density'\]"):
+        stages.stages()

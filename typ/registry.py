@@ -4,6 +4,8 @@
 of these tables, and the code that runs them reads the same entries; nothing here imports torch,
 numpy or any layer above ``typ`` (the implementation an entry names is imported where it runs):
 
+- :data:`STAGES`: the pipeline's stages in run order, with their kind (what each reads and writes
+  is declared in :mod:`flows.stages`).
 - :data:`SAMPLERS`: the diffusion samplers, as diffusers schedulers (:mod:`models.samplers` builds
   them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
 - :data:`SCHEDULES`: the noise schedules, each the β(T) function of :mod:`models.schedules` it names.
@@ -23,6 +25,36 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass, field
 from typing import Any, Literal
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One pipeline stage, as the config and the runner know it: ``kind`` is ``per-scene``
+    (incremental over scenes, content hashes), ``training`` (resumable checkpoints) or
+    ``scoring`` (reads trained models, writes reports); ``torch`` whether its code imports torch
+    (a stage that does not gets no device set up, and one that is also per-scene is settled
+    without Prefect when every scene is unchanged). What it reads and writes is declared in
+    :mod:`flows.stages`, which dvc.yaml is generated from."""
+
+    kind: Literal["per-scene", "training", "scoring"]
+    torch: bool = True
+
+
+#: every stage, in the order ``dvc repro`` runs them; the config has a block of each name
+STAGES: dict[str, StageSpec] = {
+    "simulate": StageSpec("per-scene", torch=False),
+    "voxelize": StageSpec("per-scene", torch=False),
+    "vqvae": StageSpec("training"),
+    "stage1": StageSpec("training"),
+    "adapt": StageSpec("training"),
+    "stage2": StageSpec("training"),
+    "selftrain": StageSpec("training"),
+    "generate": StageSpec("per-scene"),
+    "fusion": StageSpec("training"),
+    "ssc": StageSpec("training"),
+    "ddpm": StageSpec("training"),
+    "evaluate": StageSpec("scoring"),
+}
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from typ.config.detection import FusionConfig, SscConfig
 from typ.config.generation import (AdaptConfig, GenerateConfig, SelftrainConfig, Stage1Config, Stage2Config,
                                    VQVAEStageConfig)
 from typ.errors import TypError
+from typ.registry import STAGES as STAGE_REGISTRY
 
 
 @dataclass(frozen=True)
@@ -148,9 +149,8 @@ class Config:
     serve: ServeConfig
     source: str = field(default="params.yaml", compare=False)
 
-    #: stage name -> attribute holding its block, in pipeline order
-    STAGES: typing.ClassVar[tuple[str, ...]] = ("simulate", "voxelize", "vqvae", "stage1", "adapt", "stage2", "selftrain",
-                                                 "generate", "fusion", "ssc", "ddpm", "evaluate")
+    #: stage name -> attribute holding its block, in pipeline order (:data:`typ.registry.STAGES`)
+    STAGES: typing.ClassVar[tuple[str, ...]] = tuple(STAGE_REGISTRY)
 
     def block(self, stage: str):
         if stage not in self.STAGES:
