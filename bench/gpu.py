@@ -308,7 +308,7 @@ def voxelize_rates(run: Run, device: str, quick: bool) -> dict:
 def run_training(run: Run, record: dict, cfg, bundle, pool) -> None:
     import torch
 
-    from pipelines.pipeline_typ import PointStats
+    from pipelines.typ.pipeline_typ import PointStats
     from typ import distributed
 
     distributed.setup(run.args.device, cfg.runtime.precision if run.args.device == "cuda" else "fp32")

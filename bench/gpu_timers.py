@@ -143,7 +143,7 @@ def generator_at_size(cfg, bundle):
 
     from models.vqvae import PooledBoxMap
     from tasks import stage1, stage2, vqvae
-    from pipelines.pipeline_typ import PointStats, TYPPipeline
+    from pipelines.typ.pipeline_typ import PointStats, TYPPipeline
 
     torch.manual_seed(0)
     x_vq = vqvae.build("x", cfg.vqvae.x, bundle.train.grid.shape[2]).eval()

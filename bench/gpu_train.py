@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipelines.pipeline_typ import PointStats, TYPPipeline, occupancy_to_points
+from pipelines.typ.pipeline_typ import PointStats, TYPPipeline, occupancy_to_points
 from tasks import adapt, genscore, selftrain, stage1, stage2, vqvae
 from tasks.evaluate import intervals_json
 from tasks.training import steps_for

@@ -7,7 +7,7 @@ from pathlib import Path
 from prefect import flow
 
 from flows.common import per_scene_stage
-from pipelines.pipeline_typ import TYPPipeline
+from pipelines.typ.pipeline_typ import TYPPipeline
 from tasks import generate as stage
 from tasks.ingest import READERS, read_frames, write_single_agent
 from tasks.scene_stage import SceneStage

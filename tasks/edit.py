@@ -8,7 +8,7 @@ are, so an edit changes what it names and nothing else.
 
 What the footprint cells get (``compose``, as ``generate.compose``):
 
-- ``generated``: points drawn in the generated voxels (:func:`pipelines.pipeline_typ.occupancy_to_points`);
+- ``generated``: points drawn in the generated voxels (:func:`pipelines.typ.pipeline_typ.occupancy_to_points`);
 - ``cast``: a scan of the view's own LiDAR (:mod:`typ.castview`): one scene of the view's
   surfels, the generated cells of the footprints standing on the road, and the added or moved
   vehicles as boxes, cast once from the view's sensor; the returns in the footprint cells are
@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks.generate import EGO_CAR_LWH, Generator
+from tasks.generate import Generator
 from typ.config import CastConfig
 from typ.errors import TypError
 from typ.geometry import points_in_boxes
 from typ.registry import COMPOSE_MODES
-from typ.resim import in_mask
+from typ.resim import EGO_CAR_LWH, in_mask
 from typ.scene import AgentView
 from typ.voxel import Grid, box_map, voxelize
 
@@ -148,8 +148,8 @@ def cast_footprint(points: np.ndarray, occupancy: np.ndarray, footprint: np.ndar
     """(M, 4) float32: the sensor's returns in the ``footprint`` cells of one scene made of the
     view's ``points`` as surfels, the generated ``occupancy`` of the footprint, and ``boxes``
     (the added and moved vehicles), with intensities drawn as the generated points'."""
-    from pipelines.pipeline_typ import draw_intensities
-    from tasks.stage2 import own_car_box
+    from pipelines.typ.pipeline_typ import draw_intensities
+    from typ.resim import own_car_box
     from typ.castview import cast as cast_rays, scene_model
 
     params = dataclasses.replace(cast, carve=False)

@@ -282,7 +282,7 @@ def skipped_generation(root: Path, reports: Path, reason: str, extra: list[str])
 def generation_section(cfg, root: Path, x_vq, y_encoder, extra: list[str], *, run=None
                        ) -> tuple[dict, list[Path], list[str]]:
     """Generation accuracy on the held-out simulated target scenes: metrics, report files, summary lines."""
-    from pipelines.pipeline_typ import TYPPipeline
+    from pipelines.typ.pipeline_typ import TYPPipeline
     from tasks.selftrain import generator_dir
     from typ import plots
     from typ.sim.sensor import domain_spec

@@ -29,13 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.pipeline_typ import TYPPipeline
+from pipelines.typ.pipeline_typ import TYPPipeline
 from tasks import genscore, realism, stage1, stage2
 from tasks.pairs import iter_pairs
 from tasks.selftrain import base_pipeline, resim_variant, variant_of, variants_to_run
+from typ.distributed import threaded_map
 from typ.metrics.intervals import Interval
 from typ.registry import GENERATION_METHODS
-from typ.resim import coverage_mask, hybrid, hybrid_points
+from typ.resim import EGO_CAR_LWH, coverage_mask, hybrid, hybrid_points, own_car_box, resimulated_points
 from typ.voxel import Grid, voxelize
 
 #: method key -> row label, in the report's order
@@ -68,13 +69,11 @@ class EvalSet:
 
 def build_eval_set(split_root: Path, grid: Grid, spec, *, max_pairs: int | None = None) -> EvalSet:
     """Pairs (scenario ego -> every other agent) of every frame under ``split_root``."""
-    from tasks.generate import EGO_CAR_LWH
-
     rows: dict[str, list] = {k: [] for k in ("scenes", "x_r", "y_r", "x_e", "resim", "seen", "boxes", "ego_points",
                                               "resim_points", "ego_origins", "ref_points")}
     t0 = time.perf_counter()
     pairs = list(itertools.islice(iter_pairs(split_root, grid, ego_only=True), max_pairs))
-    resims = stage2.threaded_map(lambda p: stage2.resimulated_points(p.ego_points, spec, EGO_CAR_LWH), pairs)
+    resims = threaded_map(lambda p: resimulated_points(p.ego_points, spec, EGO_CAR_LWH), pairs)
     for p, points in zip(pairs, resims):
         rows["scenes"].append(p.scenario)
         rows["x_r"].append(p.x_r)
@@ -113,11 +112,10 @@ def sample_method(pipe: TYPPipeline, data: EvalSet, seed: int) -> tuple[np.ndarr
 def cast_views(data: EvalSet, occupancy: np.ndarray, params, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """(occupancy, points) of the cast views of every pair (:func:`typ.castview.cast_view`) built
     on the generated ``occupancy`` (P, C, H, W), as ``generate.compose: cast`` builds them."""
-    from tasks.generate import EGO_CAR_LWH
     from typ.castview import cast_view
 
-    own = stage2.own_car_box(data.sensor, EGO_CAR_LWH)
-    points = list(stage2.threaded_map(
+    own = own_car_box(data.sensor, EGO_CAR_LWH)
+    points = list(threaded_map(
         lambda i: cast_view(data.ego_points[i], occupancy[i], data.grid, data.sensor, np.random.default_rng([seed, i, 2]),
                             params=params, ego_origin=data.ego_origins[i], label_boxes=data.boxes[i],
                             exclude_boxes=own, mask=data.seen[i]), range(len(data))))

@@ -20,36 +20,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pipelines.pipeline_typ import TYPPipeline
-from typ.config import COMPOSE, CastConfig, GenerateConfig, GenerateSet, as_dict
+
+from pipelines.typ import Reference, TYPPipeline, reference_at
+from typ.config import GenerateConfig, GenerateSet, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor, write_scene
-from typ.geometry import invert, points_in_boxes, pose_to_matrix, transform_boxes
+from typ.geometry import points_in_boxes, pose_to_matrix
 from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_manifest
-from typ.registry import COMPOSE_MODES
 from typ.scene import AgentView, Scene, vehicle_mask
-from typ.voxel import Grid, box_map, points_to_reference, voxelize
+from typ.voxel import Grid
 
 STAGE = "generate"
 MANIFEST = SCENARIO_MANIFEST
 #: why a reference view or a scenario was not generated, counted per stage run
 SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_without_candidate_vehicle",
                 "roadside_unit_without_ground", "reference_view_empty")
-#: the ego's own car, which the ego's labels never contain but a reference sees
-EGO_CAR_LWH = (4.5, 1.85, 1.5)
-
-
-@dataclass(frozen=True)
-class Reference:
-    agent_id: str
-    pose: np.ndarray        # (4, 4) float64 sensor-to-world
-    boxes: np.ndarray       # (K, 7) in the reference frame
-    labels: tuple[str, ...]
-    ids: np.ndarray
-    x_e: np.ndarray         # (C, H, W) bool, x_e'
-    y_r: np.ndarray         # (1, H, W) bool
-    ego_points: np.ndarray  # (N, 4) the ego's cloud in the reference frame (x_e' before voxelization)
-    ego_origin: np.ndarray  # (3,) float64 the ego sensor's position in the reference frame
 
 
 def candidate_ids(ego: AgentView, cfg, skipped: dict[str, int]) -> set[int]:
@@ -96,29 +81,6 @@ def build_reference(ego: AgentView, index: int, grid: Grid) -> Reference:
                         int(ego.box_ids[index]), grid)
 
 
-def reference_at(ego: AgentView, ref_pose: np.ndarray, agent_id: str, exclude_id: int | None,
-                 grid: Grid) -> Reference:
-    """x_e' and y_r at sensor pose ``ref_pose`` (4x4 float64, world), from the ego's view only.
-
-    y_r holds the ego's labelled boxes (less ``exclude_id``, the vehicle carrying the
-    reference sensor) plus the ego's own car, which its labels never contain.
-    """
-    in_ego = invert(ego.pose) @ ref_pose
-    keep = ego.box_ids != exclude_id if exclude_id is not None else np.ones(len(ego.boxes), bool)
-    # the ego car's centre height in its own sensor frame: that of the labelled cars, which
-    # stand on the same road (a reference height when there are none)
-    car_z = float(np.median(ego.boxes[:, 2])) if len(ego.boxes) else -1.0
-    ego_car = np.array([[0.0, 0.0, car_z, *EGO_CAR_LWH, 0.0]])
-    boxes = transform_boxes(invert(in_ego), np.concatenate([ego.boxes[keep].reshape(-1, 7), ego_car]))
-    labels = tuple(np.asarray(ego.box_labels, dtype=object)[keep]) + ("car",)
-    ego_numeric = int(ego.agent_id) if ego.agent_id.lstrip("-").isdigit() else -1
-    ids = np.concatenate([ego.box_ids[keep], [ego_numeric]])
-    moved = points_to_reference(ego.points, ego.pose, ref_pose)
-    return Reference(agent_id, np.asarray(ref_pose, dtype=np.float64), boxes, labels, ids,
-                     voxelize(moved, grid).transpose(2, 0, 1), box_map(boxes, grid).transpose(2, 0, 1), moved,
-                     (invert(in_ego) @ np.array([0.0, 0.0, 0.0, 1.0]))[:3])
-
-
 def roadside_poses(ego: AgentView, cfg: GenerateConfig, rng: np.random.Generator,
                    skipped: dict[str, int]) -> list[np.ndarray]:
     """``cfg.roadside_units`` sensor poses (4x4 float64, world) fixed for the whole sequence.
@@ -159,56 +121,6 @@ def cav_references(scene: Scene, grid: Grid) -> list[Reference]:
             exclude = int(agent_id) if agent_id.lstrip("-").isdigit() else None
             refs.append(reference_at(ego, view.pose, agent_id, exclude, grid))
     return refs
-
-
-def needs_sensor(pipe: TYPPipeline, compose: str) -> bool:
-    """Whether :func:`generate_points` casts the reference sensor: to re-simulate the ego's
-    cloud for a re-simulation-conditioned generator or a hybrid view, or to cast a cast view."""
-    if compose not in COMPOSE:
-        raise TypError("params.yaml", "generate.compose", f"one of {COMPOSE}", compose)
-    return pipe.conditions == 2 or COMPOSE_MODES[compose].casts
-
-
-def generate_points(refs: list[Reference], pipe: TYPPipeline, grid: Grid, seed: int, *,
-                    sensor=None, compose: str = "generated", cast: CastConfig = CastConfig()) -> list[np.ndarray]:
-    """Batched sampling for all references of a scenario: (N, 4) float32 clouds in each
-    reference's sensor frame (``grid``: that sensor's grid), with the domain's point density
-    and intensity (:func:`pipelines.pipeline_typ.occupancy_to_points`). ``sensor``: the reference
-    sensor (SensorSpec) re-simulation and cast views cast with (:func:`needs_sensor`); the
-    points typ casts get intensities drawn as the generated ones. ``compose``, ``cast``: what a
-    view is made of (:class:`typ.config.GenerateConfig`)."""
-    from pipelines.pipeline_typ import draw_intensities
-    from tasks.stage2 import own_car_box, resimulated_points, threaded_map
-    from typ.resim import coverage_mask, hybrid_points
-
-    if needs_sensor(pipe, compose) and sensor is None:
-        raise TypError("tasks.generate", "sensor", "the reference sensor re-simulation and cast views cast with", None)
-    resim_points = None
-    if pipe.conditions == 2 or compose == "hybrid":
-        resim_points = list(threaded_map(lambda r: resimulated_points(r.ego_points, sensor, EGO_CAR_LWH), refs))
-    resim = None
-    if pipe.conditions == 2:
-        resim = np.stack([voxelize(p, grid).transpose(2, 0, 1) for p in resim_points]).astype(np.float32)
-    occupancy = pipe.occupancy(np.stack([r.x_e for r in refs]), np.stack([r.y_r for r in refs]), seed=seed, resim=resim)
-    clouds = [pipe.points(occ, grid, seed + k) for k, occ in enumerate(occupancy)]
-    if compose == "hybrid":
-        clouds = [hybrid_points(draw_intensities(resim_points[k], grid, pipe.point_stats,
-                                                 np.random.default_rng([seed, k, 1])),
-                                clouds[k], coverage_mask(r.ego_points, grid), grid)
-                  for k, r in enumerate(refs)]
-    elif compose == "cast":
-        from typ.castview import cast_view
-
-        own = own_car_box(sensor, EGO_CAR_LWH)
-
-        def one(k: int) -> np.ndarray:
-            r = refs[k]
-            xyz = cast_view(r.ego_points, occupancy[k], grid, sensor, np.random.default_rng([seed, k, 2]), params=cast,
-                            ego_origin=r.ego_origin, label_boxes=r.boxes[vehicle_mask(r.labels)], exclude_boxes=own)
-            return draw_intensities(xyz, grid, pipe.point_stats, np.random.default_rng([seed, k, 1]))
-
-        clouds = list(threaded_map(one, range(len(refs))))
-    return clouds
 
 
 def scenario_key(folder: Path, gset: GenerateSet, cfg: GenerateConfig, digest: str, grid: Grid) -> str:
@@ -305,10 +217,10 @@ def run_scenario(item: tuple[GenerateSet, Path], *, cfg: GenerateConfig, generat
         # an empty view is still written (every agent has a view at every timestamp); counted
         skipped["reference_view_empty"] += sum(not r.x_e.any() and not r.y_r.any() for r in refs)
     all_refs = [r for _, refs in frames for r in refs]
-    sensor = generator.sensor(_sensor_name(folder, gset)) if all_refs and needs_sensor(generator.pipe, cfg.compose) \
+    sensor = generator.sensor(_sensor_name(folder, gset)) if all_refs and generator.pipe.needs_sensor(cfg.compose) \
         else None
-    clouds = iter(generate_points(all_refs, generator.pipe, grid, cfg.seed, sensor=sensor, compose=cfg.compose,
-                                  cast=cfg.cast) if all_refs else [])
+    clouds = iter(generator.pipe.generate(all_refs, grid, cfg.seed, sensor=sensor, compose=cfg.compose, cast=cfg.cast)
+                  if all_refs else [])
     counts = {"frames": len(frames), "references": len(all_refs), "generated_points": 0, **skipped}
     with atomic_path(target, stage=STAGE, inside=out) as tmp:
         tmp.mkdir(parents=True)

@@ -28,14 +28,15 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks.generate import EGO_CAR_LWH, Generator, Reference, generate_points, reference_at
+from pipelines.typ import Reference, reference_at
+from tasks.generate import Generator
 from typ.config import CastConfig
 from typ.errors import TypError
 from typ.formats.kitti_odometry import Sequence as Drive, read_sequence
 from typ.geometry import invert, points_in_boxes, transform_points
 from typ.metrics import novel_view as nv
 from typ.metrics.intervals import Interval, bootstrap_figures
-from typ.resim import build_surface, coverage_mask, in_mask
+from typ.resim import EGO_CAR_LWH, build_surface, coverage_mask, in_mask
 from typ.scene import AgentView, vehicle_mask
 from typ.sim.sensor import SensorSpec
 from typ.voxel import Grid, box_map
@@ -116,7 +117,7 @@ class PairInput:
 
 
 def reference_for(ego: AgentView, reference_pose: np.ndarray, grid: Grid) -> Reference:
-    """:func:`tasks.generate.reference_at` at ``reference_pose``, without the ego's own car, which
+    """:func:`pipelines.typ.reference_at` at ``reference_pose``, without the ego's own car, which
     :func:`reference_at` adds to y_r for a reference beside the ego at the same time: on one drive
     the car has moved on to pose j (module doc)."""
     ref = reference_at(ego, reference_pose, "reference", None, grid)
@@ -132,18 +133,18 @@ def copy_view(p: PairInput) -> np.ndarray:
 
 def resim_view(p: PairInput) -> np.ndarray:
     """Scan i as surfels, cast from pose j with the drive's LiDAR (:mod:`typ.resim`)."""
-    from tasks.stage2 import resimulated_points
+    from typ.resim import resimulated_points
 
     return resimulated_points(p.reference.ego_points, p.sensor, EGO_CAR_LWH)
 
 
 def compose_view(compose: str) -> Callable[[PairInput], np.ndarray]:
-    """What ``typ generate`` writes with ``generate.compose: <compose>`` (:func:`tasks.generate.generate_points`)."""
+    """What ``typ generate`` writes with ``generate.compose: <compose>`` (:meth:`pipelines.typ.TYPPipeline.generate`)."""
     def view(p: PairInput) -> np.ndarray:
         if p.generator is None:
             raise TypError("typ novel-view", "generator", f"a trained generator for compose {compose!r}", None)
-        return generate_points([p.reference], p.generator.pipe, p.grid, p.seed, sensor=p.sensor, compose=compose,
-                               cast=p.cast)[0][:, :3]
+        return p.generator.pipe.generate([p.reference], p.grid, p.seed, sensor=p.sensor, compose=compose,
+                                         cast=p.cast)[0][:, :3]
 
     view.__name__ = f"{compose}_view"
     return view
@@ -153,7 +154,7 @@ def cast_no_typ_view(p: PairInput) -> np.ndarray:
     """The cast view with no generated cell: scan i's surfels, the road, y_r's boxes, cast from
     pose j exactly as ``compose: cast`` casts them (same random draws), so that ``cast`` minus
     this is what the learned generator adds."""
-    from tasks.stage2 import own_car_box
+    from typ.resim import own_car_box
     from typ.castview import cast_view
 
     r = p.reference
@@ -231,7 +232,7 @@ class DriveScans:
         The surfels inside j's own car (its LiDAR does not see its body) are left out too."""
         from scipy.spatial import cKDTree
 
-        from tasks.stage2 import own_car_box
+        from typ.resim import own_car_box
 
         others = [k for k in range(len(self.drive)) if k != j]
         origins = self.drive.poses[:, :3, 3]
@@ -339,7 +340,7 @@ def run_pairs(scans: DriveScans, pairs: Sequence[Pair], sensor: SensorSpec, grid
 
     The oracle's view of reference j does not depend on the ego frame: it is cast once per j
     (and counted against the first pair that needed it)."""
-    from tasks.stage2 import threaded_map
+    from typ.distributed import threaded_map
 
     eval_grid = evaluation_grid(grid)
     truths = Once(lambda j: truth_of(scans.scan(j), sensor))
@@ -490,7 +491,7 @@ def trained_generator(root: Path, cfg, folder: str | None = None) -> tuple[Gener
     """(the generator ``typ generate`` uses, as :func:`flows.generate.load_generator` loads it, or
     None when ``make run`` has made none; which one it is, in words, for the report's rows).
     folder: the selftrain output holding it (default: params' ``generate.generator``)."""
-    from pipelines.pipeline_typ import TYPPipeline
+    from pipelines.typ.pipeline_typ import TYPPipeline
     from tasks.selftrain import generator_dir
     from typ.io import hash_files
 

@@ -15,7 +15,7 @@ TYP Table 4's ablation is one params change. The UNet stays frozen throughout. T
 recipe enhances the re-simulation-conditioned adapter (``typ_resim``) when stage 2 trained
 one: its pseudo references and dummy egos carry re-simulated views too (an empty one for the
 dummy ego). Adapters go to ``<out>/seed_<s>/<variant>/``; the generator ``generate`` uses, a
-:class:`pipelines.pipeline_typ.TYPPipeline`, to ``<out>/generator/seed_<s>/``.
+:class:`pipelines.typ.pipeline_typ.TYPPipeline`, to ``<out>/generator/seed_<s>/``.
 """
 from __future__ import annotations
 
@@ -28,7 +28,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipelines.pipeline_typ import PointStats, TYPPipeline, point_statistics
+from pipelines.typ import Reference
+from pipelines.typ.pipeline_typ import PointStats, TYPPipeline, point_statistics
 from tasks import generate, stage1, stage2
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
@@ -107,11 +108,11 @@ def target_frames(split_root: Path, heights: dict[str, float] | None = None, dom
 
 
 def pseudo_references(frames: list, cfg: SelftrainConfig, grid: Grid,
-                      rng: np.random.Generator) -> list[generate.Reference]:
+                      rng: np.random.Generator) -> list[Reference]:
     """Up to ``cfg.pseudo_references`` reference poses, one per target frame in turn, each on a
     labelled vehicle inside [min_distance, max_distance] drawn with ``rng``."""
     skipped = generate.new_skip_counts()
-    refs: list[generate.Reference] = []
+    refs: list[Reference] = []
     for ego in frames:
         if len(refs) == cfg.pseudo_references:
             break
@@ -136,7 +137,7 @@ class References:
     resim: np.ndarray | None = None
 
     @classmethod
-    def of(cls, refs: list[generate.Reference], resim: np.ndarray | None = None) -> "References":
+    def of(cls, refs: list[Reference], resim: np.ndarray | None = None) -> "References":
         return cls(np.stack([r.x_e for r in refs]).astype(np.float32), np.stack([r.y_r for r in refs]).astype(np.float32),
                    resim)
 
@@ -191,7 +192,7 @@ def base_pipeline(cfg, root: Path, seed: int, x_vq, y_encoder, stats) -> TYPPipe
 class Inputs:
     """What self-training learns from, gathered once for every replica and variant (:func:`gather`):
     stage 2's source tuples, the pseudo references, the target's ego views as dummy-ego tuples,
-    and the target's point statistics (the generator's :class:`pipelines.pipeline_typ.PointStats`)."""
+    and the target's point statistics (the generator's :class:`pipelines.typ.pipeline_typ.PointStats`)."""
 
     tuples: Tuples
     references: References

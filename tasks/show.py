@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks.generate import EGO_CAR_LWH
 from tasks.generate import MANIFEST as GENERATED_MANIFEST
 from tasks.sim_truth import job_sensor, scenario_job, true_view
 from typ import viz
@@ -39,7 +38,7 @@ from typ.formats.opv2v import list_agents, list_timestamps, read_scene
 from typ.geometry import invert
 from typ.io import fit_name, read_json_or_none
 from typ.metrics.truth import chamfer_distance, occupancy_iou
-from typ.resim import resimulate
+from typ.resim import EGO_CAR_LWH, resimulate
 from typ.scene import AgentView, Scene
 from typ.sim.sensor import DOMAINS, SensorSpec, domain_spec
 from typ.voxel import Grid, points_to_reference, voxel_centers, voxelize

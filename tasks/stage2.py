@@ -19,8 +19,6 @@ replica (same seed). Output: ``<out>/seed_<s>/`` (safetensors + config) and resu
 """
 from __future__ import annotations
 
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -40,16 +38,15 @@ from tasks.voxel_data import apply_dihedral
 from typ import distributed
 from typ.artifacts import load_module, save_module
 from typ.config import as_dict
+from typ.distributed import threaded_map
 from typ.errors import TypError
 from typ.io import hash_obj
+from typ.resim import resimulated_points
 from typ.voxel import Grid, voxelize
 
 STAGE = "stage2"
 #: symmetries used for ``augment`` = 1, 2, 8 (see :func:`tasks.voxel_data.apply_dihedral`)
 AUGMENTS = {1: (0,), 2: (0, 4), 8: tuple(range(8))}
-#: the reference vehicle's own body around its sensor, which the ego saw and a re-simulation must
-#: not turn into a wall: a box this much larger than a car, centred on the sensor (length, width, height)
-OWN_CAR_MARGIN = 0.8
 
 
 @dataclass
@@ -66,46 +63,9 @@ class Tuples:
         return len(self.x_r)
 
 
-def resimulated_points(ego_points: np.ndarray, spec, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
-    """(M, 3) float32: an ego cloud already moved into the reference frame, re-simulated from the
-    reference pose with ``spec``'s beams (:func:`typ.resim.resimulate`), the reference vehicle's
-    own body (``ego_car_lwh`` around the sensor, enlarged by ``OWN_CAR_MARGIN``) left out."""
-    from typ.resim import resimulate
-
-    return resimulate(np.asarray(ego_points)[:, :3], spec, exclude_boxes=own_car_box(spec, ego_car_lwh))
-
-
-def own_car_box(spec, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
-    """(1, 7) the body of the vehicle carrying ``spec`` in its sensor frame, enlarged by
-    ``OWN_CAR_MARGIN``: the ego saw it, the reference LiDAR on its roof does not."""
-    l, w, h = ego_car_lwh
-    return np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
-
-
 def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
     """(C, H, W) bool: :func:`resimulated_points` voxelized on ``grid``."""
     return voxelize(resimulated_points(ego_points, spec, ego_car_lwh), grid).transpose(2, 0, 1)
-
-
-def threaded_map(fn: Callable, items: Iterable, *, workers: int | None = None) -> Iterator:
-    """``fn(item)`` of each item, in order, ``workers`` at a time (default: torch's thread count,
-    the process's CPU budget), with no more than ``2 * workers`` items in flight. For work that
-    releases the GIL (the surfel fit and the ray cast of re-simulation: two threads do 16 views
-    in 0.6x the time of one, measured on source pairs, 2 cores); each call is computed alone,
-    so the results do not depend on ``workers``."""
-    workers = workers or max(1, torch.get_num_threads())
-    items = iter(items)
-    if workers == 1:
-        yield from (fn(item) for item in items)
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        pending: deque = deque()
-        for item in items:
-            pending.append(pool.submit(fn, item))
-            if len(pending) > 2 * workers:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
 
 
 def resimulated_views(ego_clouds: Iterable[np.ndarray], spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5), *,

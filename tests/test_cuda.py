@@ -26,7 +26,7 @@ import pytest
 import torch
 
 from bench_modules import load_bench
-from pipelines.pipeline_typ import PointStats, TYPPipeline
+from pipelines.typ.pipeline_typ import PointStats, TYPPipeline
 from tasks import adapt, ddpm, fusion_train, selftrain, ssc, stage1, stage2, vqvae
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset

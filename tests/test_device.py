@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipelines import pipeline_typ as pipeline
+from pipelines.typ import pipeline_typ as pipeline
 from tasks import adapt, fusion_train, stage1, stage2, vqvae
 from tasks.fusion_batch import Inputs
 from tasks.training import state_of

@@ -84,7 +84,7 @@ def test_the_one_stage_model_samples_as_every_other_row(tmp_path, monkeypatch):
     """Table 5 compares training recipes: the one-stage model gets its own UNet, adapter and
     schedule, and the sampler of the other rows (steps, thresholds, the adapter scale)."""
     from typ import artifacts
-    from pipelines.pipeline_typ import TYPPipeline
+    from pipelines.typ.pipeline_typ import TYPPipeline
 
     base = TYPPipeline("x_vq", "y_enc", "stage1 unet", None, "grid", "linear", 1000, "dpmsolver++", 10,
                        {"threshold": 0.3}, adapter_scale=1.5)

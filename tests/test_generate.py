@@ -1,7 +1,8 @@
 """Reference poses for generation: sampled from labelled vehicles, skips counted, frames consistent."""
 import numpy as np
 
-from tasks.generate import EGO_CAR_LWH, build_reference, sample_references
+from tasks.generate import build_reference, sample_references
+from typ.resim import EGO_CAR_LWH
 from typ.config import config_from_dict
 from typ.geometry import pose_to_matrix, transform_points
 from typ.scene import AgentView
@@ -66,8 +67,8 @@ def test_hybrid_views_are_resimulated_where_the_ego_saw_and_generated_elsewhere(
     # generator's points (the same sample as compose: generated) in every other cell
     import pytest
 
-    from tasks.generate import Reference, generate_points
-    from tasks.stage2 import resimulated_points
+    from pipelines.typ import Reference
+    from typ.resim import resimulated_points
     from tests.test_pipeline import GRID as PGRID, _pipeline
     from typ.errors import TypError
     from typ.resim import coverage_mask, in_mask
@@ -86,8 +87,8 @@ def test_hybrid_views_are_resimulated_where_the_ego_saw_and_generated_elsewhere(
                               voxelize(moved, grid).transpose(2, 0, 1), box_map(np.zeros((0, 7)), grid).transpose(2, 0, 1),
                               moved, np.linalg.inv(pose)[:3, 3]))
     pipe = _pipeline()
-    plain = generate_points(refs, pipe, grid, 5)
-    mixed = generate_points(refs, pipe, grid, 5, sensor=spec, compose="hybrid")
+    plain = pipe.generate(refs, grid, 5)
+    mixed = pipe.generate(refs, grid, 5, sensor=spec, compose="hybrid")
     for ref, a, b in zip(refs, plain, mixed):
         seen = coverage_mask(ref.ego_points, grid)
         resim = resimulated_points(ref.ego_points, spec, EGO_CAR_LWH)
@@ -102,21 +103,21 @@ def test_hybrid_views_are_resimulated_where_the_ego_saw_and_generated_elsewhere(
         assert b[inside, 3].min() >= min(map(min, q)) and b[inside, 3].max() <= max(map(max, q))
         assert len(np.unique(b[inside, 3])) > 1           # drawn, not a constant
     with pytest.raises(TypError) as err:
-        generate_points(refs, pipe, grid, 5, compose="hybrid")
+        pipe.generate(refs, grid, 5, compose="hybrid")
     assert err.value.field == "sensor"
     with pytest.raises(TypError) as err:
-        generate_points(refs, pipe, grid, 5, sensor=spec, compose="mixed")
+        pipe.generate(refs, grid, 5, sensor=spec, compose="mixed")
     assert err.value.field == "generate.compose"
     # cast: one scan of the reference LiDAR, every point on one of its beams, the same bytes again
     from typ.sensors import on_beam_fractions
 
-    cast = generate_points(refs, pipe, grid, 5, sensor=spec, compose="cast")
-    assert all(np.array_equal(a, b) for a, b in zip(cast, generate_points(refs, pipe, grid, 5, sensor=spec,
+    cast = pipe.generate(refs, grid, 5, sensor=spec, compose="cast")
+    assert all(np.array_equal(a, b) for a, b in zip(cast, pipe.generate(refs, grid, 5, sensor=spec,
                                                                            compose="cast")))
     for ref, c in zip(refs, cast):
         assert c.dtype == np.float32 and c.shape[1] == 4 and len(c) > 1000
         assert on_beam_fractions(c, spec, (0.05,), min_range=1.0)[0.05] > 0.999
         assert np.linalg.norm(c[:, :3], axis=1).max() <= spec.max_range + 3 * spec.range_noise_std + 1e-3
     with pytest.raises(TypError) as err:
-        generate_points(refs, pipe, grid, 5, compose="cast")
+        pipe.generate(refs, grid, 5, compose="cast")
     assert err.value.field == "sensor"

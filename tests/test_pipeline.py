@@ -10,7 +10,7 @@ import torch
 from models.adapter import ZeroAdapter
 from models.ldm import LatentDiffusion
 from models.vqvae import BEVVQVAE, PooledBoxMap
-from pipelines.pipeline_typ import PointStats, TYPPipeline, occupancy_to_points, point_statistics
+from pipelines.typ.pipeline_typ import PointStats, TYPPipeline, occupancy_to_points, point_statistics
 from typ.errors import TypError
 from typ.voxel import Grid, voxelize
 
@@ -79,7 +79,7 @@ def test_condition_is_the_normalised_box_latent_and_the_adapter_sees_x_e():
 def test_samples_are_decoded_de_standardised_and_x_e_is_standardised_for_the_adapter(monkeypatch):
     """The UNet works on standardised latents (x^f - mean) / std: with statistics that are not
     (0, 1), G decodes the sample moved back, z·std + mean, and F_AD gets E(x_e') standardised."""
-    import pipelines.pipeline_typ as pipeline_module
+    import pipelines.typ.pipeline_typ as pipeline_module
 
     pipe = _pipeline()
     with torch.no_grad():

@@ -147,7 +147,7 @@ def _all_occupied_iou(occupancy: np.ndarray) -> float:
 def test_training_stages_write_models_and_metrics(project):
     import torch
 
-    from pipelines.pipeline_typ import TYPPipeline
+    from pipelines.typ.pipeline_typ import TYPPipeline
     from tasks.selftrain import TABLE4, generator_dir
     from tasks.stage1 import load_model as load_stage1
     from tasks.stage2 import load_adapter

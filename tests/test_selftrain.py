@@ -191,7 +191,7 @@ def test_enhance_fine_tunes_stage_2s_adapter_as_stage_2_hands_it_over(tmp_path):
     fine-tunes it all the same, and leaves stage 2's adapter as it was."""
     from models.vqvae import PooledBoxMap
     from tasks import selftrain, stage1, stage2, vqvae
-    from pipelines.pipeline_typ import PointStats, TYPPipeline
+    from pipelines.typ.pipeline_typ import PointStats, TYPPipeline
 
     unet = {"block_out_channels": [8, 8], "norm_num_groups": 4, "cross_attention_dim": 8, "attention_head_dim": 4}
     ae = {"latent_channels": 4, "block_out_channels": [8, 8], "num_codes": 16, "norm_num_groups": 4, "quantizer": "vq"}

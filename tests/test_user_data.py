@@ -50,7 +50,7 @@ class _GroundPipe:
 
     @property
     def point_stats(self):
-        from pipelines.pipeline_typ import PointStats
+        from pipelines.typ.pipeline_typ import PointStats
 
         return PointStats.single()
 
@@ -61,7 +61,7 @@ class _GroundPipe:
         return occ
 
     def points(self, occupancy, grid, seed):
-        from pipelines.pipeline_typ import PointStats, occupancy_to_points
+        from pipelines.typ.pipeline_typ import PointStats, occupancy_to_points
 
         return occupancy_to_points(occupancy, grid, PointStats.single(), np.random.default_rng(seed))
 

@@ -182,20 +182,24 @@ PLOTTED_GENERATION_METHODS = tuple(k for k, m in GENERATION_METHODS.items() if m
 
 @dataclass(frozen=True)
 class ComposeMode:
-    """One way a reference view is composed: ``text`` what the reports say it is; ``casts``
-    whether it casts the reference LiDAR (through the dataset's sensor preset); ``editable``
-    whether ``typ edit`` can remake an edited footprint with it."""
+    """One way a reference view is composed: ``text`` what the reports say it is; ``implementation``
+    the function that composes a batch (``module:function``, :mod:`pipelines.typ.compose`);
+    ``casts`` whether it casts the reference LiDAR (through the dataset's sensor preset);
+    ``resimulates`` whether it needs the ego's cloud re-simulated from the reference pose;
+    ``editable`` whether ``typ edit`` can remake an edited footprint with it."""
 
     text: str
+    implementation: str
     casts: bool = False
+    resimulates: bool = False
     editable: bool = False
 
 
 #: every compose mode, by config name (``generate.compose``)
 COMPOSE_MODES: dict[str, ComposeMode] = {
-    "generated": ComposeMode("TYP's sample alone", editable=True),
+    "generated": ComposeMode("TYP's sample alone", "pipelines.typ.compose:generated", editable=True),
     "hybrid": ComposeMode("the ego's cloud re-simulated from the cooperating pose where the ego saw, TYP's sample "
-                          "elsewhere", casts=True),
+                          "elsewhere", "pipelines.typ.compose:hybrid", casts=True, resimulates=True),
     "cast": ComposeMode("one scene of the ego's surfaces where it saw and TYP's cells elsewhere, cast with the "
-                        "cooperating agent's LiDAR", casts=True, editable=True),
+                        "cooperating agent's LiDAR", "pipelines.typ.compose:cast", casts=True, editable=True),
 }

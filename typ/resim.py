@@ -50,6 +50,12 @@ from typ.voxel import Grid, voxelize
 
 METHODS = ("surfels", "mesh")
 LAYOUTS = ("HWC", "CHW")
+#: the car a sensor stands on (length, width, height): the ego's own, which its labels never contain
+#: but a reference sees, and the reference vehicle's, which the ego saw but its roof LiDAR does not
+EGO_CAR_LWH = (4.5, 1.85, 1.5)
+#: the reference vehicle's own body around its sensor, which the ego saw and a re-simulation must
+#: not turn into a wall: a box this much larger than a car, centred on the sensor (length, width, height)
+OWN_CAR_MARGIN = 0.8
 _WHERE = "typ.resim.resimulate"
 
 
@@ -324,3 +330,17 @@ def hybrid_points(resim_points, generated_points, mask, grid: Grid) -> np.ndarra
     z0 = grid.lower[2]
     in_height = (a[:, 2] >= z0) & (a[:, 2] < z0 + grid.shape[2] * grid.voxel_size[2])
     return np.concatenate([a[in_mask(a, mask, grid) & in_height], b[~in_mask(b, mask, grid)]]).astype(np.result_type(a, b))
+
+
+def own_car_box(spec, ego_car_lwh=EGO_CAR_LWH) -> np.ndarray:
+    """(1, 7) the body of the vehicle carrying ``spec`` in its sensor frame, enlarged by
+    ``OWN_CAR_MARGIN``: the ego saw it, the reference LiDAR on its roof does not."""
+    l, w, h = ego_car_lwh
+    return np.array([[0.0, 0.0, h / 2 - spec.mount_height, l + OWN_CAR_MARGIN, w + OWN_CAR_MARGIN, h + 0.5, 0.0]])
+
+
+def resimulated_points(ego_points: np.ndarray, spec, ego_car_lwh=EGO_CAR_LWH) -> np.ndarray:
+    """(M, 3) float32: an ego cloud already moved into the reference frame, re-simulated from the
+    reference pose with ``spec``'s beams (:func:`resimulate`), the reference vehicle's
+    own body (``ego_car_lwh`` around the sensor, enlarged by ``OWN_CAR_MARGIN``) left out."""
+    return resimulate(np.asarray(ego_points)[:, :3], spec, exclude_boxes=own_car_box(spec, ego_car_lwh))

@@ -1303,7 +1303,7 @@ def _(d):
     import json as json_
 
     from models.vqvae import PooledBoxMap
-    from pipelines.pipeline_typ import TYPPipeline
+    from pipelines.typ.pipeline_typ import TYPPipeline
 
     grid = Grid((-6.4, 6.4), (-6.4, 6.4), (-0.75, 3.25), (16, 16, 4))
     pipe = TYPPipeline(_tiny_vqvae(), PooledBoxMap(downsample=2), _tiny_unet(), None, grid, "linear", 1000, "ddim",
@@ -1698,7 +1698,7 @@ def _generator(d: Path, **changes) -> Probe:
     import json as json_
 
     from models.vqvae import PooledBoxMap
-    from pipelines.pipeline_typ import TYPPipeline
+    from pipelines.typ.pipeline_typ import TYPPipeline
 
     grid = Grid((-6.4, 6.4), (-6.4, 6.4), (-0.75, 3.25), (16, 16, 4))
     pipe = TYPPipeline(_tiny_vqvae(), PooledBoxMap(downsample=2), _tiny_unet(), None, grid, "linear", 1000, "ddim",

@@ -102,7 +102,7 @@ Workers = Annotated[int, Bound(1, 256, "processes, one each: past a large machin
                                   "memory and start-up")]
 LearningRate = Annotated[float, Bound(0, 10, "an optimiser step size: past 10 every optimiser here diverges",
                                       low_open=True)]
-#: diffusion steps T; a saved generator's (pipelines.pipeline_typ) and a saved model's (typ.artifacts) too
+#: diffusion steps T; a saved generator's (pipelines.typ.pipeline_typ) and a saved model's (typ.artifacts) too
 MAX_TIMESTEPS = 10_000
 #: the adapter's residuals times this at sampling: past it they drown the UNet (both params and pipeline.json)
 MAX_ADAPTER_SCALE = 1000.0

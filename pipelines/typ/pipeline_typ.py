@@ -22,7 +22,10 @@ typ generator runs it in three lines::
     points = pipe(ego_points, boxes, reference_pose, mount_height=2.2,
                   generator=torch.Generator().manual_seed(0))
 
-Batched work (:meth:`occupancy`) takes dense grids; ``__call__`` takes one ego cloud.
+Batched work (:meth:`occupancy`) takes dense grids; ``__call__`` takes one ego cloud;
+:meth:`generate` makes the views of a batch of references (:mod:`pipelines.typ.reference`) in
+any compose mode of :data:`typ.registry.COMPOSE_MODES` (:mod:`pipelines.typ.compose`), as the
+generate stage, ``typ generate`` and the real-scan benchmark do.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ import math
 import numbers
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -43,10 +47,14 @@ from models.schedules import SCHEDULES, betas
 from models.vqvae import build_from_config as build_encoder
 from typ import distributed
 from typ.artifacts import load_module, save_module
-from typ.config import MAX_ADAPTER_SCALE, MAX_NOISE_STD, MAX_TIMESTEPS
+from typ.config import MAX_ADAPTER_SCALE, MAX_NOISE_STD, MAX_TIMESTEPS, CastConfig
 from typ.errors import TypError
 from typ.io import read_json_or_none, write_json
+from typ.registry import COMPOSE_MODES
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
+
+if TYPE_CHECKING:
+    from pipelines.typ.reference import Reference
 
 PIPELINE_JSON = "pipeline.json"
 COMPONENTS = ("x_vqvae", "box_encoder", "unet", "adapter")
@@ -267,6 +275,42 @@ class TYPPipeline:
     def points(self, occupancy: np.ndarray, sensor_grid: Grid, seed: int) -> np.ndarray:
         """(C, H, W) occupancy on a sensor's grid -> (N, 4) float32 cloud in that sensor's frame."""
         return occupancy_to_points(occupancy, sensor_grid, self.point_stats, np.random.default_rng(seed))
+
+    def needs_sensor(self, compose: str) -> bool:
+        """Whether :meth:`generate` casts the reference sensor: to re-simulate the ego's cloud for a
+        re-simulation-conditioned generator or a mode that re-simulates, or to cast a cast view."""
+        if compose not in COMPOSE_MODES:
+            raise TypError("params.yaml", "generate.compose", f"one of {tuple(COMPOSE_MODES)}", compose)
+        return self.conditions == 2 or COMPOSE_MODES[compose].casts
+
+    def generate(self, refs: Sequence[Reference], grid: Grid, seed: int, *, compose: str = "generated",
+                 sensor=None, cast: CastConfig = CastConfig()) -> list[np.ndarray]:
+        """The reference views of a batch of references (:func:`pipelines.typ.reference.reference_at`),
+        composed as ``compose`` says (:data:`typ.registry.COMPOSE_MODES`): (N, 4) float32 clouds in
+        each reference's sensor frame (``grid``: that sensor's grid), with the domain's point
+        density and intensity. ``sensor``: the reference LiDAR (SensorSpec) that re-simulation and
+        cast views cast with (:meth:`needs_sensor`); ``cast``: the cast view's scene
+        (:class:`typ.config.CastConfig`). Batch b of the samples is seeded ``seed + b``
+        (:meth:`occupancy`); the same arguments give the same bytes."""
+        from pipelines.typ.compose import Batch, composer
+        from typ.distributed import threaded_map
+        from typ.resim import EGO_CAR_LWH, resimulated_points
+
+        compose_fn = composer(compose)
+        if self.needs_sensor(compose) and sensor is None:
+            raise TypError("TYPPipeline.generate", "sensor", "the reference sensor re-simulation and cast views cast "
+                           "with", None)
+        resim_points = None
+        if self.conditions == 2 or COMPOSE_MODES[compose].resimulates:
+            resim_points = list(threaded_map(lambda r: resimulated_points(r.ego_points, sensor, EGO_CAR_LWH), refs))
+        resim = None
+        if self.conditions == 2:
+            resim = np.stack([voxelize(p, grid).transpose(2, 0, 1) for p in resim_points]).astype(np.float32)
+        occupancy = self.occupancy(np.stack([r.x_e for r in refs]), np.stack([r.y_r for r in refs]), seed=seed,
+                                   resim=resim)
+        clouds = [self.points(occ, grid, seed + k) for k, occ in enumerate(occupancy)]
+        return compose_fn(Batch(self, refs, grid, seed, occupancy, clouds, sensor=sensor, cast=cast,
+                                resim_points=resim_points))
 
     def __call__(self, ego_points: np.ndarray, boxes: np.ndarray, reference_pose: np.ndarray, *, mount_height: float,
                  num_inference_steps: int | None = None, generator: torch.Generator | None = None,
