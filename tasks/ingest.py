@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import importlib
 import re
 import sys
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
+from typ import registry
 from typ.config import SourceConfig
 from typ.errors import TypError
 from typ.formats.kitti import MAX_TEXT_BYTES, read_kitti_frame
@@ -38,6 +40,7 @@ from typ.formats.opv2v import time_order, write_scene
 from typ.formats.waymo import iter_waymo_frames
 from typ.inputs import inside, read_text
 from typ.io import atomic_path, code_digest, hash_files, hash_obj, write_manifest
+from typ.registry import ReaderSpec
 from typ.scene import AgentView, Scene
 from typ.sensors import resolve
 import typ.formats
@@ -84,11 +87,11 @@ class DatasetScenario:
             scene = to_sensor_frame(scene, lift)
             # stamps that are not the files' order (nuScenes, KITTI): number the frames as they come
             yield dataclasses.replace(scene, scenario=self.name,
-                                      timestamp=scene.timestamp if reader.own_timestamps else f"{stamp:06d}")
+                                      timestamp=scene.timestamp if reader.spec.own_timestamps else f"{stamp:06d}")
 
     def key(self) -> str:
         """A digest of everything the scenario's files hold and how they are read."""
-        records = [part[0] for part in self.parts] if READERS[self.fmt].keyed_records else []
+        records = [part[0] for part in self.parts] if READERS[self.fmt].spec.keyed_records else []
         return hash_files(self.files, extra=hash_obj({"name": self.name, "format": self.fmt, "records": records,
                                                       "code": _CODE, "sensor": self.lidar,
                                                       "frames": [list(p[1:]) for p in self.parts]
@@ -125,7 +128,7 @@ def list_dataset(fmt: str, root: str | Path, *, sensor: str | None = None
         resolve(sensor, where="typ", field="--sensor / sensor")
     scenarios, splits = READERS[fmt].find(root)
     if not scenarios:
-        raise TypError(root, "root", f"{fmt} frames ({READERS[fmt].layout})", "none found")
+        raise TypError(root, "root", f"{fmt} frames ({READERS[fmt].spec.layout})", "none found")
     if sensor is not None or READERS[fmt].estimate is not None:
         scenarios = [dataclasses.replace(s, sensor=sensor or READERS[fmt].estimate(s)) for s in scenarios]
     by_name: dict[str, DatasetScenario] = {}
@@ -138,7 +141,7 @@ def list_dataset(fmt: str, root: str | Path, *, sensor: str | None = None
 
 
 
-def _kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+def find_kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios, splits, names = [], {}, {}
     for folder in ("training", "testing"):
         base = root / folder
@@ -170,7 +173,7 @@ def _kitti(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     return scenarios, splits
 
 
-def _nuscenes(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+def find_nuscenes(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios, splits = [], {}
     for info_path in sorted(inside(p.name, root) for p in root.glob("*.json") if "info" in p.name):
         records, categories = read_info(info_path)
@@ -218,7 +221,7 @@ def _microseconds(info_path: Path, k: int, record: dict) -> int:
     return int(round(t * 1e6)) if t < 1e11 else int(t)
 
 
-def _waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+def find_waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios, splits = [], {}
     for folder in ("", "training", "validation", "testing"):
         for path in sorted((root / folder).glob("*.tfrecord")):
@@ -228,7 +231,7 @@ def _waymo(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     return scenarios, splits
 
 
-def _kitti_odometry(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
+def find_kitti_odometry(root: Path) -> tuple[list[DatasetScenario], dict[str, list[str]]]:
     scenarios = []
     for name in list_sequences(root):
         sequence = read_sequence(root, name)
@@ -237,7 +240,7 @@ def _kitti_odometry(root: Path) -> tuple[list[DatasetScenario], dict[str, list[s
     return scenarios, {}
 
 
-def _kitti_odometry_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+def kitti_odometry_frames(scenario: DatasetScenario) -> Iterator[Scene]:
     (sequence, first, stop), = scenario.parts
     for k in range(first, stop):
         view = AgentView(agent_id="ego", points=sequence.points(k), pose=sequence.poses[k].copy(),
@@ -245,7 +248,7 @@ def _kitti_odometry_frames(scenario: DatasetScenario) -> Iterator[Scene]:
         yield Scene(scenario=scenario.name, timestamp=f"{k:06d}", agents={"ego": view}, dataset=ODOMETRY)
 
 
-def _estimate_odometry_sensor(scenario: DatasetScenario) -> str:
+def estimate_odometry_sensor(scenario: DatasetScenario) -> str:
     (sequence, first, _), = scenario.parts
     return estimate_sensor(sequence.points(first), where=sequence.scans[first])[0]
 
@@ -260,76 +263,64 @@ def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in name)[:80]
 
 
-def _kitti_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+def kitti_frames(scenario: DatasetScenario) -> Iterator[Scene]:
     (root, folder, frame), = scenario.parts
     yield read_kitti_frame(root, frame, folder)
 
 
-def _nuscenes_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+def nuscenes_frames(scenario: DatasetScenario) -> Iterator[Scene]:
     for record, categories, bin_path, info_path in scenario.parts:
         yield record_frame(record, categories, bin_path, info_path)
 
 
-def _waymo_frames(scenario: DatasetScenario) -> Iterator[Scene]:
+def waymo_frames(scenario: DatasetScenario) -> Iterator[Scene]:
     yield from iter_waymo_frames(scenario.files[0])
 
 
 @dataclass(frozen=True)
 class Reader:
-    """How one single-agent dataset format is found and read: ``find(root)`` -> (its scenarios, its
-    own splits); ``frames(scenario)`` its frames in time order, one at a time; ``layout`` what a
-    root holds (for the error when it holds nothing). ``vehicle_frame``: points come in the vehicle
-    frame, origin on the ground (lifted by the preset's mount height); ``own_timestamps``: the
-    dataset's stamps are in file order and kept; ``keyed_records``: the scenario's key hashes its
-    parts' records too (nuScenes info entries); ``one_file``: ``typ generate --input`` may name
-    one file of it. Its LiDAR is the preset ``sensor`` names (:mod:`typ.sensors.presets`; empty:
-    the preset of the format's name), or, with ``estimate``, the one ``estimate(scenario)`` finds
-    in its scans (a layout any car's drive is written in); ``--sensor`` names another.
+    """One single-agent dataset format: its registry entry (:class:`typ.registry.ReaderSpec`: layout,
+    frame conventions, LiDAR) with its functions resolved: ``find(root)`` -> (its scenarios, its own
+    splits); ``frames(scenario)`` its frames in time order, one at a time; ``estimate(scenario)``
+    the LiDAR preset a scenario's scans show (None: the preset ``spec.sensor`` names, or the one of
+    the format's name); ``--sensor`` names another.
 
-    A new format is its reader (``typ/formats/<name>.py``) and an entry in :data:`READERS`, plus
-    its name in the config's ``SINGLE_AGENT_FORMATS``."""
+    A new format is its reader (``typ/formats/<name>.py``), its ``find``/``frames`` functions here
+    and an entry in :data:`typ.registry.READERS` naming them (the config offers its name from there)."""
 
+    name: str
+    spec: ReaderSpec
     find: Callable[[Path], tuple[list[DatasetScenario], dict[str, list[str]]]]
     frames: Callable[[DatasetScenario], Iterator[Scene]]
-    layout: str
-    vehicle_frame: bool = False
-    own_timestamps: bool = False
-    keyed_records: bool = False
-    one_file: bool = False
-    sensor: str = ""
     estimate: Callable[[DatasetScenario], str] | None = None
 
-    @property
-    def name(self) -> str:
-        return next(name for name, reader in READERS.items() if reader is self)
+    @classmethod
+    def of(cls, name: str, spec: ReaderSpec) -> "Reader":
+        """The reader registry entry ``name`` describes."""
+        def function(path: str) -> Callable:
+            module, _, attr = path.partition(":")
+            return getattr(importlib.import_module(module), attr)
+
+        return cls(name, spec, function(spec.find), function(spec.frames),
+                   function(spec.estimate) if spec.estimate else None)
 
     @property
     def preset(self) -> str:
-        return self.sensor or self.name
+        return self.spec.sensor or self.name
 
     def lift(self, lidar: str) -> float:
         """Height of ``lidar`` (a preset name) above the frame this format's points come in: its
         mount height for a vehicle-frame format, else 0 (the points are in the LiDAR's own frame).
         Looked up when a scenario is read, so a reader whose LiDAR is named per source (a preset
         not of its own name) imports and lists without one."""
-        if not self.vehicle_frame:
+        if not self.spec.vehicle_frame:
             return 0.0
         return resolve(lidar, where=f"the {self.name} reader (tasks/ingest.py)", field="sensor").mount_height
 
 
-#: every single-agent format, by name (``simulate.sources.<domain>.format``, ``typ generate --format``)
-READERS: dict[str, Reader] = {
-    "kitti": Reader(_kitti, _kitti_frames, "training/ or testing/ with velodyne/*.bin"),
-    "nuscenes": Reader(_nuscenes, _nuscenes_frames, "mmdet3d *info*.json files beside their .pcd.bin clouds",
-                       keyed_records=True),
-    "waymo": Reader(_waymo, _waymo_frames, "*.tfrecord segments in the root or in training/, validation/, testing/",
-                    vehicle_frame=True, own_timestamps=True, one_file=True),
-    # KITTI odometry's own drives are KITTI's HDL-64E; another car's drive in the layout is told
-    # by its scans (or --sensor)
-    ODOMETRY: Reader(_kitti_odometry, _kitti_odometry_frames,
-                     "sequences/<seq>/ with velodyne/*.bin, calib.txt (Tr) and poses.txt", sensor="kitti",
-                     estimate=_estimate_odometry_sensor),
-}
+#: every single-agent format, by name (``simulate.sources.<domain>.format``, ``typ generate --format``):
+#: :data:`typ.registry.READERS`, whose entries name the functions above
+READERS: dict[str, Reader] = {name: Reader.of(name, spec) for name, spec in registry.READERS.items()}
 FORMATS = tuple(READERS)
 
 
@@ -487,7 +478,7 @@ def read_frames(fmt: str, path: str | Path, *, sensor: str | None = None) -> lis
         raise TypError("typ generate", "--format", f"one of {list(FORMATS)}", fmt)
     if not path.exists():
         raise TypError(path, "--input", f"an existing {fmt} file or folder", "not found")
-    if READERS[fmt].one_file and path.is_file():
+    if READERS[fmt].spec.one_file and path.is_file():
         scenario = _file_scenario(fmt, path)
         return [dataclasses.replace(scenario, sensor=sensor) if sensor else scenario]
     return list_dataset(fmt, path, sensor=sensor)[0]

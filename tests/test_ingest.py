@@ -381,18 +381,25 @@ def test_ddpm_says_why_it_cannot_train_on_scans_without_point_classes(tmp_path):
     assert all(Image.open(p).size == (700, 160) for p in pngs)
 
 
-def test_the_config_offers_exactly_the_registered_readers():
+def test_every_registered_reader_is_offered_and_resolves_its_functions_and_a_sensor():
     """``simulate.sources.<domain>.format`` and ``typ generate --format`` take the reader registry's
-    names; each reader's LiDAR is the preset of its name, or the one it names (kitti-odometry:
-    KITTI's HDL-64E, when a drive's scans are not estimated or named another)."""
+    names (typ.registry.READERS); each entry's functions exist, and its LiDAR is a preset: the one
+    of its name, or the one it names (kitti-odometry: KITTI's HDL-64E, when a drive's scans are not
+    estimated or named another)."""
     from tasks.ingest import READERS
-    from typ.config import SINGLE_AGENT_FORMATS, SOURCE_FORMATS
+    from typ.config import SOURCE_FORMATS, config_from_dict
+    from typ.registry import READERS as SPECS
     from typ.sensors import resolve
 
-    assert tuple(READERS) == SINGLE_AGENT_FORMATS and SOURCE_FORMATS == SINGLE_AGENT_FORMATS + ("opv2v",)
-    assert {name: r.preset for name, r in READERS.items()} == {"kitti": "kitti", "nuscenes": "nuscenes",
-                                                               "waymo": "waymo", "kitti-odometry": "kitti"}
-    assert all(resolve(r.preset).mount_height > 0 for r in READERS.values())   # every reader resolves a sensor
+    assert tuple(READERS) == tuple(SPECS) and SOURCE_FORMATS[-1] == "opv2v"
+    for name, reader in READERS.items():
+        spec = SPECS[name]
+        assert reader.spec is spec and reader.name == name and callable(reader.find) and callable(reader.frames)
+        assert (reader.estimate is not None) == bool(spec.estimate)
+        assert resolve(reader.preset).mount_height > 0   # every reader resolves a sensor
+        source = {"format": name, "root": "data/x"}
+        assert config_from_dict({"simulate": {"sources": {"target": source}}}).simulate.sources["target"].format == name
+    assert READERS["kitti-odometry"].preset == "kitti" and READERS["nuscenes"].preset == "nuscenes"
 
 
 def test_a_reader_whose_lidar_is_named_per_source_needs_no_preset_of_its_name(monkeypatch):
@@ -400,13 +407,15 @@ def test_a_reader_whose_lidar_is_named_per_source_needs_no_preset_of_its_name(mo
     imports and lists it (heights are looked up when a scenario is read); a scenario that names a
     preset is lifted by that preset's height, one that names none is a named error."""
     from tasks.ingest import READERS, Reader
+    from typ.registry import ReaderSpec
     from typ.sensors import SENSORS
 
     ego = AgentView("ego", np.array([[1.0, 2.0, 0.5, 0.1]], np.float32), np.eye(4),
                     boxes=np.array([[5.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0]]), box_labels=("car",),
                     box_ids=np.array([0]))
     frames = lambda scenario: iter([Scene(scenario.name, "7", {"ego": ego})])   # noqa: E731
-    monkeypatch.setitem(READERS, "fleet-logs", Reader(lambda root: ([], {}), frames, "logs/*.bin", vehicle_frame=True))
+    spec = ReaderSpec("fleet:find", "fleet:frames", "logs/*.bin", vehicle_frame=True)
+    monkeypatch.setitem(READERS, "fleet-logs", Reader("fleet-logs", spec, lambda root: ([], {}), frames))
     named = list(DatasetScenario("fleet-logs", "drive_a", (), sensor="nuscenes"))
     lift = SENSORS["nuscenes"].mount_height
     assert [s.timestamp for s in named] == ["000000"]

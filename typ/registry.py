@@ -6,6 +6,7 @@ numpy or any layer above ``typ`` (the implementation an entry names is imported 
 
 - :data:`STAGES`: the pipeline's stages in run order, with their kind (what each reads and writes
   is declared in :mod:`flows.stages`).
+- :data:`READERS`: the single-agent dataset formats, each naming its functions in :mod:`tasks.ingest`.
 - :data:`SAMPLERS`: the diffusion samplers, as diffusers schedulers (:mod:`models.samplers` builds
   them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
 - :data:`SCHEDULES`: the noise schedules, each the β(T) function of :mod:`models.schedules` it names.
@@ -54,6 +55,46 @@ STAGES: dict[str, StageSpec] = {
     "ssc": StageSpec("training"),
     "ddpm": StageSpec("training"),
     "evaluate": StageSpec("scoring"),
+}
+
+
+@dataclass(frozen=True)
+class ReaderSpec:
+    """One single-agent dataset format (``simulate.sources.<domain>.format``, ``typ generate
+    --format``): ``find`` and ``frames`` its functions (``module:function``): ``find(root)`` ->
+    (its scenarios, its own splits), ``frames(scenario)`` its frames in time order; ``layout`` what
+    a root holds (for the error when it holds nothing); ``sensor`` the preset of its LiDAR
+    (:mod:`typ.sensors.presets`; empty: the preset of the format's name), or, with ``estimate``,
+    the function that finds it in a scenario's scans. ``vehicle_frame``: points come in the
+    vehicle frame, origin on the ground; ``own_timestamps``: the dataset's stamps are in file order
+    and kept; ``keyed_records``: a scenario's key hashes its parts' records too; ``one_file``:
+    ``typ generate --input`` may name one file of it."""
+
+    find: str
+    frames: str
+    layout: str
+    vehicle_frame: bool = False
+    own_timestamps: bool = False
+    keyed_records: bool = False
+    one_file: bool = False
+    sensor: str = ""
+    estimate: str = ""
+
+
+#: every single-agent format typ reads, by config name (:mod:`tasks.ingest` runs them)
+READERS: dict[str, ReaderSpec] = {
+    "kitti": ReaderSpec("tasks.ingest:find_kitti", "tasks.ingest:kitti_frames",
+                        "training/ or testing/ with velodyne/*.bin"),
+    "nuscenes": ReaderSpec("tasks.ingest:find_nuscenes", "tasks.ingest:nuscenes_frames",
+                           "mmdet3d *info*.json files beside their .pcd.bin clouds", keyed_records=True),
+    "waymo": ReaderSpec("tasks.ingest:find_waymo", "tasks.ingest:waymo_frames",
+                        "*.tfrecord segments in the root or in training/, validation/, testing/",
+                        vehicle_frame=True, own_timestamps=True, one_file=True),
+    # KITTI odometry's own drives are KITTI's HDL-64E; another car's drive in the layout is told by
+    # its scans (or --sensor)
+    "kitti-odometry": ReaderSpec("tasks.ingest:find_kitti_odometry", "tasks.ingest:kitti_odometry_frames",
+                                 "sequences/<seq>/ with velodyne/*.bin, calib.txt (Tr) and poses.txt",
+                                 sensor="kitti", estimate="tasks.ingest:estimate_odometry_sensor"),
 }
 
 

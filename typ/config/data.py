@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 from typ.config.base import DOMAINS, SIMULATE, Bound, Coordinate, Length, Product, Seed, Workers
 from typ.errors import TypError
+from typ.registry import READERS
 from typ.voxel import MAX_VOXELS
 
 Side = Annotated[int, Bound(1, 8192, "cells along one axis: 8x the paper's largest image (1024)")]
@@ -144,9 +145,9 @@ class DomainSimulation:
 #: ``simulate.sources.<domain>.format``: the datasets typ reads a domain from. ``opv2v``: a
 #: collaborative root in OPV2V layout (OPV2V, V2V4Real), taken as it is; the others: single-agent
 #: datasets, each frame moved into its LiDAR's frame and written as a one-agent scenario. The
-#: single-agent names are ``tasks.ingest.READERS``'s (a test holds them equal; the config reads no
-#: dataset code)
-SINGLE_AGENT_FORMATS = ("kitti", "nuscenes", "waymo", "kitti-odometry")
+#: single-agent names are the reader registry's (:data:`typ.registry.READERS`; the config reads
+#: no dataset code)
+SINGLE_AGENT_FORMATS = tuple(READERS)
 SOURCE_FORMATS = SINGLE_AGENT_FORMATS + ("opv2v",)
 SourceFormat = Literal[SOURCE_FORMATS]
 #: a drive's scans, at most (KITTI odometry's longest sequence holds 4,661; a day at 10 Hz 864,000)
