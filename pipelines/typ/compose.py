@@ -36,7 +36,7 @@ class Batch:
     LiDAR (a SensorSpec; None for modes that do not cast); ``resim_points`` the ego's cloud
     re-simulated from each reference pose, for the modes that re-simulate (else None)."""
 
-    pipe: object
+    pipe: object            #: the TYPPipeline that sampled it (its point statistics draw intensities)
     refs: Sequence[Reference]
     grid: Grid
     seed: int
@@ -52,17 +52,15 @@ def generated(batch: Batch) -> list[np.ndarray]:
 
 
 def hybrid(batch: Batch) -> list[np.ndarray]:
-    from pipelines.typ.pipeline_typ import draw_intensities
     from typ.resim import coverage_mask, hybrid_points
 
-    return [hybrid_points(draw_intensities(batch.resim_points[k], batch.grid, batch.pipe.point_stats,
-                                           np.random.default_rng([batch.seed, k, 1])),
+    return [hybrid_points(batch.pipe.intensities(batch.resim_points[k], batch.grid,
+                                                 np.random.default_rng([batch.seed, k, 1])),
                           batch.clouds[k], coverage_mask(r.ego_points, batch.grid), batch.grid)
             for k, r in enumerate(batch.refs)]
 
 
 def cast(batch: Batch) -> list[np.ndarray]:
-    from pipelines.typ.pipeline_typ import draw_intensities
     from typ.castview import cast_view
     from typ.distributed import threaded_map
     from typ.resim import EGO_CAR_LWH, own_car_box
@@ -75,7 +73,7 @@ def cast(batch: Batch) -> list[np.ndarray]:
         xyz = cast_view(r.ego_points, batch.occupancy[k], batch.grid, batch.sensor,
                         np.random.default_rng([batch.seed, k, 2]), params=batch.cast, ego_origin=r.ego_origin,
                         label_boxes=r.boxes[vehicle_mask(r.labels)], exclude_boxes=own)
-        return draw_intensities(xyz, batch.grid, batch.pipe.point_stats, np.random.default_rng([batch.seed, k, 1]))
+        return batch.pipe.intensities(xyz, batch.grid, np.random.default_rng([batch.seed, k, 1]))
 
     return list(threaded_map(one, range(len(batch.refs))))
 

@@ -276,6 +276,11 @@ class TYPPipeline:
         """(C, H, W) occupancy on a sensor's grid -> (N, 4) float32 cloud in that sensor's frame."""
         return occupancy_to_points(occupancy, sensor_grid, self.point_stats, np.random.default_rng(seed))
 
+    def intensities(self, points: np.ndarray, sensor_grid: Grid, rng: np.random.Generator) -> np.ndarray:
+        """(N, >=3) points in a sensor's frame -> (N, 4) float32, intensities drawn as :meth:`points`
+        draws them for generated voxels (:func:`draw_intensities`, the target's point statistics)."""
+        return draw_intensities(points, sensor_grid, self.point_stats, rng)
+
     def needs_sensor(self, compose: str) -> bool:
         """Whether :meth:`generate` casts the reference sensor: to re-simulate the ego's cloud for a
         re-simulation-conditioned generator or a mode that re-simulates, or to cast a cast view."""
