@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib
 import re
 import sys
 from dataclasses import dataclass, field
@@ -297,12 +296,8 @@ class Reader:
     @classmethod
     def of(cls, name: str, spec: ReaderSpec) -> "Reader":
         """The reader registry entry ``name`` describes."""
-        def function(path: str) -> Callable:
-            module, _, attr = path.partition(":")
-            return getattr(importlib.import_module(module), attr)
-
-        return cls(name, spec, function(spec.find), function(spec.frames),
-                   function(spec.estimate) if spec.estimate else None)
+        return cls(name, spec, registry.load(spec.find), registry.load(spec.frames),
+                   registry.load(spec.estimate) if spec.estimate else None)
 
     @property
     def preset(self) -> str:

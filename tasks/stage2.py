@@ -41,7 +41,7 @@ from typ.config import as_dict
 from typ.distributed import threaded_map
 from typ.errors import TypError
 from typ.io import hash_obj
-from typ.resim import resimulated_points
+from typ.resim import EGO_CAR_LWH, resimulated_points
 from typ.voxel import Grid, voxelize
 
 STAGE = "stage2"
@@ -63,18 +63,18 @@ class Tuples:
         return len(self.x_r)
 
 
-def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5)) -> np.ndarray:
+def resimulated_view(ego_points: np.ndarray, spec, grid: Grid, ego_car_lwh=EGO_CAR_LWH) -> np.ndarray:
     """(C, H, W) bool: :func:`resimulated_points` voxelized on ``grid``."""
     return voxelize(resimulated_points(ego_points, spec, ego_car_lwh), grid).transpose(2, 0, 1)
 
 
-def resimulated_views(ego_clouds: Iterable[np.ndarray], spec, grid: Grid, ego_car_lwh=(4.5, 1.85, 1.5), *,
+def resimulated_views(ego_clouds: Iterable[np.ndarray], spec, grid: Grid, ego_car_lwh=EGO_CAR_LWH, *,
                       workers: int | None = None) -> Iterator[np.ndarray]:
     """:func:`resimulated_view` of each cloud, in order, on :func:`threaded_map`."""
     return threaded_map(lambda cloud: resimulated_view(cloud, spec, grid, ego_car_lwh), ego_clouds, workers=workers)
 
 
-def collect(pairs: Iterable[Pair], *, grid: Grid, resim_spec=None, ego_car_lwh=(4.5, 1.85, 1.5),
+def collect(pairs: Iterable[Pair], *, grid: Grid, resim_spec=None, ego_car_lwh=EGO_CAR_LWH,
             max_pairs: int | None = None) -> Tuples:
     """The dense grids of ``pairs`` (streamed: no point cloud is kept beyond the re-simulation's
     window), with the re-simulated view when ``resim_spec`` (the reference sensor's

@@ -27,6 +27,8 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from typ.errors import TypError
+
 
 @dataclass(frozen=True)
 class StageSpec:
@@ -234,6 +236,19 @@ class ComposeMode:
     casts: bool = False
     resimulates: bool = False
     editable: bool = False
+
+
+def load(path: str) -> Any:
+    """The object an entry names by ``module:name`` (imported here, where it runs)."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def compose_mode(name: str) -> ComposeMode:
+    """The entry of compose mode ``name``; any other name is a named error (``generate.compose``)."""
+    if name not in COMPOSE_MODES:
+        raise TypError("params.yaml", "generate.compose", f"one of {tuple(COMPOSE_MODES)}", name)
+    return COMPOSE_MODES[name]
 
 
 #: every compose mode, by config name (``generate.compose``)

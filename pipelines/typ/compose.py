@@ -16,7 +16,6 @@ A new mode is a function here taking a :class:`Batch` and one registry entry nam
 """
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -24,8 +23,7 @@ import numpy as np
 
 from pipelines.typ.reference import Reference
 from typ.config import CastConfig
-from typ.errors import TypError
-from typ.registry import COMPOSE_MODES
+from typ.registry import compose_mode, load
 from typ.voxel import Grid
 
 
@@ -80,7 +78,4 @@ def cast(batch: Batch) -> list[np.ndarray]:
 
 def composer(name: str) -> Callable[[Batch], list[np.ndarray]]:
     """The function of compose mode ``name`` (its registry entry's ``implementation``)."""
-    if name not in COMPOSE_MODES:
-        raise TypError("params.yaml", "generate.compose", f"one of {tuple(COMPOSE_MODES)}", name)
-    module, _, function = COMPOSE_MODES[name].implementation.partition(":")
-    return getattr(importlib.import_module(module), function)
+    return load(compose_mode(name).implementation)

@@ -50,7 +50,7 @@ from typ.artifacts import load_module, save_module
 from typ.config import MAX_ADAPTER_SCALE, MAX_NOISE_STD, MAX_TIMESTEPS, CastConfig
 from typ.errors import TypError
 from typ.io import read_json_or_none, write_json
-from typ.registry import COMPOSE_MODES
+from typ.registry import COMPOSE_MODES, compose_mode
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
 if TYPE_CHECKING:
@@ -284,9 +284,7 @@ class TYPPipeline:
     def needs_sensor(self, compose: str) -> bool:
         """Whether :meth:`generate` casts the reference sensor: to re-simulate the ego's cloud for a
         re-simulation-conditioned generator or a mode that re-simulates, or to cast a cast view."""
-        if compose not in COMPOSE_MODES:
-            raise TypError("params.yaml", "generate.compose", f"one of {tuple(COMPOSE_MODES)}", compose)
-        return self.conditions == 2 or COMPOSE_MODES[compose].casts
+        return self.conditions == 2 or compose_mode(compose).casts
 
     def generate(self, refs: Sequence[Reference], grid: Grid, seed: int, *, compose: str = "generated",
                  sensor=None, cast: CastConfig = CastConfig()) -> list[np.ndarray]:
