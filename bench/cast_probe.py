@@ -166,14 +166,10 @@ def real_frames(root: Path) -> None:
 def surface_distance(ego_points: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(M,) metres from each of ``points`` to the surface the ego saw: the surfels its returns
     describe (:func:`typ.resim.build_surface`, as re-simulation and cast views build it)."""
-    import open3d as o3d
-
     from typ.resim import build_surface
+    from typ.sim.raycast import RayScene
 
-    verts, tris = build_surface(np.asarray(ego_points, dtype=np.float64)[:, :3])
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
-    return scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(points[:, :3], dtype=np.float32))).numpy()
+    return RayScene(build_surface(np.asarray(ego_points, dtype=np.float64)[:, :3])).distance(points[:, :3])
 
 
 if __name__ == "__main__":

@@ -165,18 +165,14 @@ def behind_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     than :data:`OCCLUSION_SLACK_M` before it."""
     if len(boxes) == 0 or len(points) == 0:
         return np.zeros(len(points), dtype=bool)
-    import open3d as o3d
-
     from typ.castview import oriented_boxes_mesh
+    from typ.sim.raycast import RayScene
 
-    verts, tris = oriented_boxes_mesh(boxes)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
     xyz = np.asarray(points, dtype=np.float64)[:, :3]
     dist = np.linalg.norm(xyz, axis=1)
     rays = np.zeros((len(xyz), 6), dtype=np.float32)
     rays[:, 3:] = xyz / np.maximum(dist, 1e-9)[:, None]
-    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    hit = RayScene(oriented_boxes_mesh(boxes)).trace(rays)
     return np.isfinite(hit) & (hit < dist - OCCLUSION_SLACK_M)
 
 

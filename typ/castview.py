@@ -31,6 +31,7 @@ from typ.config import CastConfig
 from typ.errors import TypError
 from typ.metrics.truth import check_points
 from typ.resim import build_surface, coverage_mask
+from typ.sim.raycast import cast_mesh
 from typ.sim.sensor import SensorSpec
 from typ.voxel import Grid
 
@@ -229,38 +230,15 @@ def scene_model(ego_points_in_ref, occupancy, grid: Grid, spec: SensorSpec, *, p
 def cast(vertices, triangles, spec: SensorSpec, rng: np.random.Generator) -> np.ndarray:
     """Every ray of ``spec`` from its origin into the surface: (M, 3) float32 returns.
 
-    As the simulator's LiDAR (:func:`typ.sim.raycast.cast`) without a material: a return is
-    lost with probability ``spec.dropout`` and its range gets Gaussian noise of
-    ``spec.range_noise_std`` clipped at 3 std (``rng`` draws both, in that order). Rays start
-    ``min_range`` from their origin and return up to ``max_range``, beam-major in ``spec``'s ray
-    order.
+    :func:`typ.sim.raycast.cast_mesh` with the sensor's dropout and range noise (``rng`` draws
+    both), rays starting ``min_range`` out: the sensor sees nothing nearer, and a surfel (up to
+    1.5 m from the return that made it) or a cell that reaches around the sensor must not blind it.
     """
     if not isinstance(spec, SensorSpec):
         raise TypError(_WHERE, "spec", "a SensorSpec (typ.sensors.resolve)", type(spec).__name__)
     if not isinstance(rng, np.random.Generator):
         raise TypError(_WHERE, "rng", "a numpy.random.Generator", type(rng).__name__)
-    if len(triangles) == 0:
-        return np.zeros((0, 3), dtype=np.float32)
-    import open3d as o3d  # here, not at import: loading it takes a second
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
-    directions, origins = spec.ray_directions(), spec.ray_origins()
-    rays = np.zeros((len(directions), 6), dtype=np.float32)
-    rays[:, 3:] = directions
-    # each ray starts min_range out: the sensor sees nothing nearer, and a surfel (up to 1.5 m
-    # from the return that made it) or a cell that reaches around the sensor must not blind it
-    rays[:, :3] = directions * spec.min_range + (0.0 if origins is None else origins)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64) + spec.min_range
-    hit = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range))
-    if spec.dropout > 0:
-        hit = hit[rng.random(len(hit)) >= spec.dropout]
-    r = t[hit]
-    if spec.range_noise_std > 0:
-        r = r + np.clip(rng.standard_normal(len(r)), -3.0, 3.0) * spec.range_noise_std
-    points = directions[hit] * r[:, None]
-    return (points if origins is None else origins[hit] + points).astype(np.float32)
+    return cast_mesh(vertices, triangles, spec, rng, start=spec.min_range)
 
 
 def cast_view(ego_points_in_ref, occupancy, grid: Grid, spec: SensorSpec, rng: np.random.Generator, *,

@@ -2,9 +2,8 @@
 from the reference pose with the reference sensor's beams, the LiDARsim-style answer a user
 might pick instead of TYP's generator.
 
-Two surfaces, both ray-cast with ``open3d.t.geometry.RaycastingScene`` the way
-:mod:`typ.sim.raycast` casts the simulated town (sensor at the origin of its frame, one
-``cast_rays`` call with ``SensorSpec.ray_directions()``, hits kept in
+Two surfaces, both ray-cast by typ's one caster (:func:`typ.sim.raycast.cast_mesh`: sensor at
+the origin of its frame, every ray of the reference sensor in one call, hits kept in
 ``[min_range, max_range]``):
 
 * ``"surfels"`` (default, needs only the points): after averaging the points per
@@ -45,6 +44,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from typ.errors import TypError
 from typ.geometry import invert, points_in_boxes, transform_points
 from typ.metrics.truth import check_points
+from typ.sim.raycast import cast_mesh
 from typ.sim.sensor import SensorSpec
 from typ.voxel import Grid, voxelize
 
@@ -116,7 +116,7 @@ def resimulate(ego_points_in_ref, spec: SensorSpec, *, method: str = "surfels", 
         raise TypError(_WHERE, "spec", "a SensorSpec (e.g. domain_spec(name).sensor)", type(spec).__name__)
     verts, tris = build_surface(ego_points_in_ref, method=method, ego_pose_in_ref=ego_pose_in_ref,
                                 exclude_boxes=exclude_boxes, params=params)
-    return cast_surface(verts, tris, spec)
+    return cast_mesh(verts, tris, spec)
 
 
 def build_surface(ego_points_in_ref, *, method: str = "surfels", ego_pose_in_ref=None, exclude_boxes=None,
@@ -152,32 +152,6 @@ def build_surface(ego_points_in_ref, *, method: str = "surfels", ego_pose_in_ref
     if method == "surfels":
         return _surfels(xyz, params)
     return _range_image_mesh(xyz, ego_to_ref, params)
-
-
-def cast_surface(vertices, triangles, spec: SensorSpec) -> np.ndarray:
-    """Cast every ray of ``spec`` from its origin into a triangle surface: (M, 3) float32 hits.
-
-    vertices (V, 3) and triangles (T, 3) in the sensor frame; as :func:`typ.sim.raycast.cast`
-    without its noise, dropout and intensity. Triangles are hit from either side.
-    """
-    if not isinstance(spec, SensorSpec):
-        raise TypError(_WHERE, "spec", "a SensorSpec (e.g. domain_spec(name).sensor)", type(spec).__name__)
-    if len(triangles) == 0:
-        return np.zeros((0, 3), dtype=np.float32)
-    import open3d as o3d  # here, not at import: loading it takes a second
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
-    directions, origins = spec.ray_directions(), spec.ray_origins()
-    rays = np.zeros((len(directions), 6), dtype=np.float32)
-    rays[:, 3:] = directions
-    if origins is not None:
-        rays[:, :3] = origins
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    hit = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range))
-    hits = directions[hit] * t[hit, None].astype(np.float64)
-    return (hits if origins is None else origins[hit] + hits).astype(np.float32)
 
 
 def _voxel_means(xyz: np.ndarray, size: float) -> np.ndarray:

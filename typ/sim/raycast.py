@@ -1,6 +1,11 @@
-"""Cast a LiDAR into the town at one frame, from any pose: the simulator's eyes and its ground truth.
+"""typ's one ray caster: the simulator's eyes and ground truth, re-simulation, cast views and edits.
 
-One open3d ``RaycastingScene`` holds the static town (geometry 0) and the frame's vehicles
+:class:`RayScene` is the only place typ builds an open3d ``RaycastingScene`` and casts rays;
+:func:`sensor_rays` makes a sensor's rays. :func:`cast` scans the town at one frame from any pose
+with its materials (semantics, reflectivity, intensity); :func:`cast_mesh` scans a bare surface
+given in the sensor frame (the re-simulated, cast and edited views).
+
+In the town, one scene holds the static town (geometry 0) and the frame's vehicles
 (geometry 1, 24 triangles each); a hit's geometry and primitive ids give its semantic class
 and reflectivity. A vehicle can be left out of the scene so that a sensor on its roof does
 not see it (the CARLA LiDAR ignores its parent actor the same way); scenes are cached per
@@ -39,6 +44,83 @@ class TownFrame:
     _scenes: dict = field(default_factory=dict, repr=False, compare=False)
 
 
+class RayScene:
+    """Triangle meshes in one open3d ``RaycastingScene``: every ray typ casts goes through :meth:`trace`.
+
+    meshes: ``(vertices (V, 3), triangles (T, 3))`` pairs, stored as float32 / uint32; ``ids`` are
+    their geometry ids, in order. Triangles are hit from either side.
+    """
+
+    def __init__(self, *meshes):
+        import open3d as o3d  # here, not at import: a scenario with nothing to do skips its second of loading
+
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self.ids = tuple(self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(v, dtype=np.float32)),
+                                                   o3d.core.Tensor(np.ascontiguousarray(t, dtype=np.uint32)))
+                         for v, t in meshes)
+
+    def trace(self, rays: np.ndarray, *fields: str):
+        """Cast (N, 6) float32 rays ``[origin, unit direction]`` in one call: the (N,) ``t_hit``
+        (inf where a ray meets nothing), or a tuple of the open3d result ``fields`` named."""
+        import open3d as o3d
+
+        hit = self._scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, dtype=np.float32)))
+        return tuple(hit[f].numpy() for f in fields) if fields else hit["t_hit"].numpy()
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(N,) float32 metres from each of (N, 3) ``points`` to the nearest triangle."""
+        import open3d as o3d
+
+        return self._scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))).numpy()
+
+
+def sensor_rays(spec: SensorSpec, pose: np.ndarray | None = None, start: float = 0.0) -> np.ndarray:
+    """(N, 6) float32 rays ``[origin, direction]`` of every beam of ``spec``, in its ray order.
+
+    pose: (4, 4) float64 sensor-to-world, or None for the sensor frame; start (sensor frame only):
+    each ray begins this far along its direction from its origin.
+    """
+    directions, origins = spec.ray_directions(), spec.ray_origins()
+    rays = np.zeros((len(directions), 6), dtype=np.float32)
+    if pose is not None:
+        rays[:, :3] = pose[:3, 3] if origins is None else pose[:3, 3] + origins @ pose[:3, :3].T
+        rays[:, 3:] = directions @ pose[:3, :3].T
+        return rays
+    rays[:, 3:] = directions
+    if start:
+        rays[:, :3] = directions * start + (0.0 if origins is None else origins)
+    elif origins is not None:
+        rays[:, :3] = origins
+    return rays
+
+
+def cast_mesh(vertices, triangles, spec: SensorSpec, rng: np.random.Generator | None = None, *,
+              start: float = 0.0) -> np.ndarray:
+    """Every ray of ``spec`` from its origin into a bare surface: (M, 3) float32 returns, sensor frame.
+
+    vertices (V, 3) and triangles (T, 3) in the sensor frame. A return lies in
+    ``[min_range, max_range]`` along its ray; rays begin ``start`` out (a surface nearer is not
+    seen and does not blind the ray). With ``rng`` it is lost with probability ``spec.dropout`` and
+    its range gets Gaussian noise of ``spec.range_noise_std`` clipped at 3 std (drawn in that
+    order); without, the scan is ideal. Beam-major in ``spec``'s ray order. As :func:`cast`
+    without a material.
+    """
+    if len(triangles) == 0:
+        return np.zeros((0, 3), dtype=np.float32)
+    directions, origins = spec.ray_directions(), spec.ray_origins()
+    t = RayScene((vertices, triangles)).trace(sensor_rays(spec, start=start))
+    if start:
+        t = t.astype(np.float64) + start
+    hit = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range))
+    if rng is not None and spec.dropout > 0:
+        hit = hit[rng.random(len(hit)) >= spec.dropout]
+    r = t[hit].astype(np.float64)
+    if rng is not None and spec.range_noise_std > 0:
+        r = r + np.clip(rng.standard_normal(len(r)), -3.0, 3.0) * spec.range_noise_std
+    points = directions[hit] * r[:, None]
+    return (points if origins is None else origins[hit] + points).astype(np.float32)
+
+
 def town_frame(town: Town, traffic: Traffic, frame: int) -> TownFrame:
     """The :class:`TownFrame` of ``traffic`` at frame index ``frame``."""
     return TownFrame(town, traffic.ids, traffic.labels, traffic.boxes(frame), traffic.paint)
@@ -54,16 +136,11 @@ def _scene(world: TownFrame, exclude_vehicle_id: int | None):
         if key not in set(world.vehicle_ids.tolist()):
             raise TypError("typ.sim.cast", "exclude_vehicle_id", "the id of a vehicle in this frame or None", key)
         keep = keep[world.vehicle_ids != key]
-    import open3d as o3d  # here, not at import: a scenario with nothing to do skips its second of loading
-
-    scene = o3d.t.geometry.RaycastingScene()
-    static_id = scene.add_triangles(o3d.core.Tensor(world.town.vertices), o3d.core.Tensor(world.town.triangles))
-    vehicle_id = -1
+    meshes = [(world.town.vertices, world.town.triangles)]
     if len(keep):
-        verts, tris = vehicle_mesh(world.vehicle_boxes[keep], tuple(world.vehicle_labels[i] for i in keep))
-        vehicle_id = scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)),
-                                         o3d.core.Tensor(tris.astype(np.uint32)))
-    world._scenes[key] = (scene, static_id, vehicle_id, keep)
+        meshes.append(vehicle_mesh(world.vehicle_boxes[keep], tuple(world.vehicle_labels[i] for i in keep)))
+    scene = RayScene(*meshes)
+    world._scenes[key] = (scene, scene.ids[0], scene.ids[1] if len(keep) else -1, keep)
     return world._scenes[key]
 
 
@@ -87,19 +164,13 @@ def cast(town_at_frame: TownFrame, pose: np.ndarray, spec: SensorSpec, rng: np.r
     scene, static_id, vehicle_id, keep = _scene(town_at_frame, exclude_vehicle_id)
     d_sensor = spec.ray_directions()
     o_sensor = spec.ray_origins()
-    rays = np.empty((len(d_sensor), 6), dtype=np.float32)
-    rays[:, :3] = pose[:3, 3] if o_sensor is None else pose[:3, 3] + o_sensor @ pose[:3, :3].T
-    rays[:, 3:] = d_sensor @ pose[:3, :3].T
-    import open3d as o3d
-
-    hit = scene.cast_rays(o3d.core.Tensor(rays))
-    t = hit["t_hit"].numpy()
-    valid = np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range)
-    idx = np.flatnonzero(valid)
+    rays = sensor_rays(spec, pose)
+    t, geom, prim, normal = scene.trace(rays, "t_hit", "geometry_ids", "primitive_ids", "primitive_normals")
+    idx = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range))
     t = t[idx].astype(np.float64)
-    geom = hit["geometry_ids"].numpy()[idx]
-    prim = hit["primitive_ids"].numpy()[idx].astype(np.int64)
-    normal = hit["primitive_normals"].numpy()[idx].astype(np.float64)
+    geom = geom[idx]
+    prim = prim[idx].astype(np.int64)
+    normal = normal[idx].astype(np.float64)
 
     on_vehicle = geom == vehicle_id
     static_prim = np.where(on_vehicle, 0, prim)
