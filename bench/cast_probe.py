@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipelines.typ.pipeline_typ import TYPPipeline  # noqa: E402
 from tasks import evaluate_generation as gen, genscore  # noqa: E402
-from tasks.selftrain import generator_dir  # noqa: E402
+from pipelines.typ.pipeline_typ import generator_dir  # noqa: E402
 from typ import castview  # noqa: E402
 from typ.config import COMPOSE, CastConfig, as_dict, load_config  # noqa: E402
 from typ.resim import EGO_CAR_LWH, hybrid, hybrid_points, own_car_box  # noqa: E402

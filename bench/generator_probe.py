@@ -34,7 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from models.schedules import alphas_cumprod, betas  # noqa: E402
 from pipelines.typ.pipeline_typ import TYPPipeline  # noqa: E402
 from tasks import evaluate_generation as gen, genscore, stage1, stage2  # noqa: E402
-from tasks.selftrain import base_pipeline, generator_dir  # noqa: E402
+from pipelines.typ.pipeline_typ import generator_dir  # noqa: E402
+from tasks.selftrain import base_pipeline  # noqa: E402
 from tasks.voxel_data import load_views  # noqa: E402
 from tasks.vqvae import load_model as load_vqvae  # noqa: E402
 from typ.config import load_config  # noqa: E402

@@ -22,7 +22,7 @@ STAGE = "generate"
 def load_generator(root: Path, cfg) -> stage.Generator:
     """The generator ``selftrain`` wrote for replica ``stage1.seed`` (the first), with the
     sampler ``generate`` asks for and every dataset's sensor height."""
-    from tasks.selftrain import generator_dir
+    from pipelines.typ.pipeline_typ import generator_dir
 
     folder = generator_dir(root / cfg.generate.generator, cfg.stage1.seed)
     pipe = TYPPipeline.from_pretrained(folder)

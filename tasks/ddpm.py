@@ -40,11 +40,11 @@ from models.schedules import alphas_cumprod, betas
 from tasks.ddpm_data import (BevRepresentation, RangeRepresentation, Representation, Scan, data_key,  # noqa: F401
                              load_scans, pixel_set, representations, unlabelled)
 from tasks.training import (Trainings, batch_rng, grad_norm, noised_batch, prediction_target, run_checkpoint_dir,
-                            run_loop, seed_dir, seed_everything)
+                            run_loop, seed_everything)
 from typ import distributed
 from typ.artifacts import load_if_key, save_module
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
-from typ.io import atomic_path, code_digest, hash_obj
+from typ.io import atomic_path, code_digest, hash_obj, seed_dir
 from typ.registry import SAMPLERS
 
 STAGE = "ddpm"

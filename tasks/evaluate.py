@@ -283,7 +283,7 @@ def generation_section(cfg, root: Path, x_vq, y_encoder, extra: list[str], *, ru
                        ) -> tuple[dict, list[Path], list[str]]:
     """Generation accuracy on the held-out simulated target scenes: metrics, report files, summary lines."""
     from pipelines.typ.pipeline_typ import TYPPipeline
-    from tasks.selftrain import generator_dir
+    from pipelines.typ.pipeline_typ import generator_dir
     from typ import plots
     from typ.sim.sensor import domain_spec
     from typ.viz import gallery

@@ -48,12 +48,12 @@ import torch
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
-from tasks.training import Trainings, one_thread, seed_dir
+from tasks.training import Trainings, one_thread
 from typ import distributed
 from typ.config import FusionConfig
 from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
-from typ.io import SCENARIO_MANIFEST, read_json_or_none
+from typ.io import SCENARIO_MANIFEST, read_json_or_none, seed_dir
 from typ.registry import METHODS, SINGLE_AGENT
 
 #: what pre-training set ``both`` is made of, in this order

@@ -492,7 +492,7 @@ def trained_generator(root: Path, cfg, folder: str | None = None) -> tuple[Gener
     None when ``make run`` has made none; which one it is, in words, for the report's rows).
     folder: the selftrain output holding it (default: params' ``generate.generator``)."""
     from pipelines.typ.pipeline_typ import TYPPipeline
-    from tasks.selftrain import generator_dir
+    from pipelines.typ.pipeline_typ import generator_dir
     from typ.io import hash_files
 
     path = generator_dir(root / (folder or cfg.generate.generator), cfg.stage1.seed)

@@ -29,11 +29,11 @@ import numpy as np
 import torch
 
 from pipelines.typ import Reference
-from pipelines.typ.pipeline_typ import PointStats, TYPPipeline, point_statistics
+from pipelines.typ.pipeline_typ import PointStats, TYPPipeline, generator_dir, point_statistics
 from tasks import generate, stage1, stage2
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
-from tasks.training import Trainings, seed_dir
+from tasks.training import Trainings
 from typ.config import SelftrainConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor
@@ -299,8 +299,3 @@ def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
                 if log_model is not None and seed == cfg.stage1.seed:
                     log_model("selftrain-adapter", adapter, example)
     return metrics
-
-
-def generator_dir(out: Path, seed: int) -> Path:
-    """The trained generator of replica ``seed``: ``<out>/generator/seed_<seed>``."""
-    return seed_dir(Path(out) / "generator", seed)

@@ -19,12 +19,12 @@ from models.ssc import ssc_detector
 from tasks.fusion_data import FusionSample
 from tasks.ssc_data import IGNORE, NETWORK, STAGE, TrainingSet, model_kwargs, ssc_dataset
 from tasks.training import (Trainings, drop_checkpoints, learning_rate, one_thread, run_checkpoint_dir, run_loop,
-                            seed_dir, seed_everything, set_learning_rate)
+                            seed_everything, set_learning_rate)
 from typ import distributed
 from typ.artifacts import load_if_key, save_module
 from typ.config import SscConfig
 from typ.errors import TypError
-from typ.io import hash_obj
+from typ.io import hash_obj, seed_dir
 
 
 def _fit(model: FusionModule, step: Callable[[int, torch.device], tuple[torch.Tensor, np.ndarray]], n_items: int, *,

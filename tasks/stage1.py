@@ -26,13 +26,13 @@ from models.postprocess import postprocess
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.training import (EMA, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
-                            run_checkpoint_dir, run_loop, seed_dir, seed_everything, set_learning_rate, steps_for)
+                            run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
 from tasks.voxel_data import ViewSet, load_views
 from typ import distributed
 from typ.artifacts import load_module, save_module
 from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
-from typ.io import hash_obj
+from typ.io import hash_obj, seed_dir
 from typ.metrics.truth import occupancy_iou
 
 STAGE = "stage1"

@@ -71,12 +71,6 @@ def save_checkpoint(directory: Path, step: int, state: dict, *, keep: int = 2) -
     return path
 
 
-def seed_dir(parent: Path, seed: int) -> Path:
-    """``parent/seed_<k>``: what training seed ``k`` of one network (or one stage's set of
-    networks) made, its checkpoints too. Every stage names a seed's folder so."""
-    return Path(parent) / f"seed_{seed}"
-
-
 def run_checkpoint_dir(root: Path, key: str) -> Path:
     """``root/key``: where this run's checkpoints go. Checkpoints of other keys (another config or
     other data) are removed, so a resume only ever continues the same run: the checkpoints typ

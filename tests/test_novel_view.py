@@ -245,7 +245,7 @@ def assert_json_shape(doc: dict, methods: list[str], bands: set[str]) -> None:
 @needs_data
 def test_typ_novel_view_end_to_end(tmp_path, tiny_generator):
     from cli.main import main
-    from tasks.selftrain import generator_dir
+    from pipelines.typ.pipeline_typ import generator_dir
 
     root = tmp_path / "project"
     root.mkdir()
@@ -290,7 +290,7 @@ def test_pairs_made_two_at_a_time_score_the_same(tmp_path):
 @needs_data
 def test_evaluate_scores_the_drives_params_name(tmp_path, tiny_generator):
     from tasks.evaluate import NOVEL_VIEW, novel_view_section
-    from tasks.selftrain import generator_dir
+    from pipelines.typ.pipeline_typ import generator_dir
     from typ.config import config_from_dict, read_params
 
     raw = read_params(REPO / "params.yaml")

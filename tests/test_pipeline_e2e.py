@@ -148,7 +148,8 @@ def test_training_stages_write_models_and_metrics(project):
     import torch
 
     from pipelines.typ.pipeline_typ import TYPPipeline
-    from tasks.selftrain import TABLE4, generator_dir
+    from pipelines.typ.pipeline_typ import generator_dir
+    from tasks.selftrain import TABLE4
     from tasks.stage1 import load_model as load_stage1
     from tasks.stage2 import load_adapter
     from tasks.voxel_data import load_views

@@ -473,6 +473,12 @@ def read_json_or_none(path: str | os.PathLike):
         return None
 
 
+def seed_dir(parent: str | os.PathLike, seed: int) -> Path:
+    """``parent/seed_<k>``: what training seed ``k`` of one network (or one stage's set of
+    networks) made, its checkpoints too. Every stage names a seed's folder so."""
+    return Path(parent) / f"seed_{seed}"
+
+
 def code_digest(*modules) -> str:
     """sha256 of the source files of ``modules`` (a package counts with all its ``.py`` files).
 

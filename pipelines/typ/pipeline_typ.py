@@ -49,7 +49,7 @@ from typ import distributed
 from typ.artifacts import load_module, save_module
 from typ.config import MAX_ADAPTER_SCALE, MAX_NOISE_STD, MAX_TIMESTEPS, CastConfig
 from typ.errors import TypError
-from typ.io import read_json_or_none, write_json
+from typ.io import read_json_or_none, seed_dir, write_json
 from typ.registry import COMPOSE_MODES, compose_mode
 from typ.voxel import Grid, box_map, points_to_reference, voxelize
 
@@ -205,6 +205,12 @@ def draw_intensities(points: np.ndarray, grid: Grid, stats: PointStats, rng: np.
     centre = grid.lower[:2] + (cell + 0.5) * grid.voxel_size[:2]
     band = _band(centre[:, 0], centre[:, 1], stats)
     return np.concatenate([pts, _intensities(band, stats, rng)[:, None]], axis=1).astype(np.float32)
+
+
+def generator_dir(out: Path, seed: int) -> Path:
+    """Where the ``selftrain`` stage saves the trained generator of replica ``seed`` and where
+    ``generate`` and ``evaluate`` load it: ``<out>/generator/seed_<seed>``."""
+    return seed_dir(Path(out) / "generator", seed)
 
 
 @dataclass
