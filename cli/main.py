@@ -80,9 +80,9 @@ def quiet_bad_input_tracebacks() -> None:
 def settled_before_prefect(stage: str) -> bool:
     """Whether ``typ run <stage>`` first tries to settle it without Prefect: a per-scene stage that
     needs no torch (the stage registry says), whose every scene may be unchanged."""
-    from flows.stages import by_name
+    from typ.registry import STAGES as REGISTERED
 
-    spec = by_name()[stage]
+    spec = REGISTERED[stage]
     return spec.kind == "per-scene" and not spec.torch
 
 
@@ -220,10 +220,10 @@ def _cmd_dvc_yaml(args) -> int:
         return 0
     old = path.read_text() if path.is_file() else ""
     if old == text:
-        print(f"{path} is what flows/stages.py gives")
+        print(f"{path} is what the stage declarations give")
         return 0
     sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), text.splitlines(True), str(path), "typ dvc-yaml"))
-    print(f"{path} differs from what flows/stages.py gives: run `typ dvc-yaml`", file=sys.stderr)
+    print(f"{path} differs from what the stage declarations give: run `typ dvc-yaml`", file=sys.stderr)
     return 1
 
 
@@ -393,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "points a YAML language server at it)")
     p.add_argument("--out", default="params.schema.json", help="path relative to the root (default: params.schema.json)")
     p.set_defaults(fn=_cmd_schema)
-    p = sub.add_parser("dvc-yaml", help="write dvc.yaml from the stage registry (flows/stages.py), code deps from "
+    p = sub.add_parser("dvc-yaml", help="write dvc.yaml from the stage declarations (tasks/<stage>.py), code deps from "
                                         "each flow's imports")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 with a diff when dvc.yaml differs")
     p.set_defaults(fn=_cmd_dvc_yaml)

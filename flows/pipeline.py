@@ -10,7 +10,7 @@ from typing import Callable
 
 from prefect import flow
 
-from flows import stages as registry
+from typ import registry
 from flows.common import api_for_workers, runner
 from flows.server import scoped_environ
 from typ.config import Config, load_config
@@ -31,7 +31,7 @@ def _flow(stage: str) -> Callable:
 
 
 STAGES = Config.STAGES
-_REGISTERED = registry.by_name()
+_REGISTERED = registry.STAGES
 #: stages that fan out per scene (a task runner: threads or Dask); the others train or score
 #: (torchrun/DDP), as the stage registry says
 PER_SCENE = tuple(s for s in STAGES if _REGISTERED[s].kind == "per-scene")

@@ -38,6 +38,11 @@ from typ.config import AdaptConfig, as_dict
 from typ.io import hash_obj
 from typ.metrics.bev import jsd_bev, mmd_bev
 from typ.voxel import voxel_centers
+from typ.registry import TARGET_VOXELS, declare
+
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("adapt", data=("data/voxels/dataset=source/split=train", f"{TARGET_VOXELS}train",
+                                     "artifacts/vqvae/x"), outs=("artifacts/adapt",), loss_curves=True)
 
 
 def source_from_target(target: BEVVQVAE) -> BEVVQVAE:

@@ -45,9 +45,14 @@ from typ import distributed
 from typ.artifacts import load_if_key, save_module
 from typ.config import DdpmConfig, DdpmRunConfig, as_dict
 from typ.io import atomic_path, code_digest, hash_obj, seed_dir
-from typ.registry import SAMPLERS
+from typ.registry import SAMPLERS, TARGET_VOXELS, declare
 
 STAGE = "ddpm"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("ddpm", data=("data/sim/target/train", "data/sim/target/test", f"{TARGET_VOXELS}test",
+                                    "artifacts/vqvae", "artifacts/stage1"),
+                      params=("stage1",), outs=("artifacts/ddpm",), reports=("reports/ddpm.md",),
+                      images=("reports/ddpm_pareto.png", "reports/ddpm_samples.png"), loss_curves=True)
 #: the code a trained model / a generated set depends on: part of their cache keys (typ.artifacts:
 #: the saved folder's layout, so that a folder in an older layout is retrained, not misread)
 _MODEL_CODE = code_digest(models.pixel_ddpm, models.time_embedding, models.schedules, typ.artifacts)

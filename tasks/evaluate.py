@@ -29,7 +29,7 @@ from tasks import genscore, realism, selftrain
 from tasks.scene_stage import StageResult
 from typ.io import write_text
 from typ.metrics.intervals import Interval
-from typ.registry import PLOTTED_GENERATION_METHODS
+from typ.registry import METHODS, PLOTTED_GENERATION_METHODS, Plot, declare
 from typ.reporting import markdown_table
 
 LOG = logging.getLogger(__name__)
@@ -42,6 +42,38 @@ GALLERY = Path("reports") / "gallery"
 ACCURACY_COLUMNS = [(name, m.label) for name, m in genscore.METRICS.items() if m.in_table]
 #: the adaptation ablation's rows (TYP Table 4), as tasks.selftrain names them
 TABLE4 = tuple(v.name for v in selftrain.TABLE4)
+
+
+def _sweep(name: str, x: str, x_label: str, title: str) -> Plot:
+    return Plot(f"fusion_{name}", x, {f"reports/plots/fusion_{name}.csv": list(METHODS)}, "linear", x_label,
+                "AP@0.5", title)
+
+
+_PLOTTED = list(PLOTTED_GENERATION_METHODS)
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare(
+    "evaluate",
+    data=("data/sim", "data/voxels", "artifacts/vqvae", "artifacts/adapt/source_vq", "artifacts/stage1",
+          "artifacts/stage2", "artifacts/selftrain", "artifacts/fusion/models", "artifacts/fusion/training.json",
+          "artifacts/ddpm/features"),
+    params=("fusion", "ddpm", "stage1", "selftrain", "stage2", "voxelize", "simulate"),
+    reports=("reports/generation_accuracy.md", "reports/gallery", "reports/plots", "reports/fusion.md"),
+    images=("reports/fusion_pr.png", "reports/fusion_robustness.png"),
+    plots=(
+        Plot("iou_by_band", "range_m", {"reports/plots/iou_by_band.csv": _PLOTTED}, "linear",
+             "range band centre (m from the sensor)", "IoU", "IoU to the truth by range band, held-out target pairs"),
+        Plot("row_profile", "elevation_deg", {"reports/plots/row_profile.csv": ["truth", *_PLOTTED]},
+             "linear", "beam elevation (deg)", "share of azimuth bins with a return",
+             "range-image row occupancy of generated reference views, held-out target pairs"),
+        Plot("fusion_pr", "recall",
+             {"reports/plots/fusion_pr.csv": ["none_ego", *(f"{m}_{d}" for m in METHODS if m != "none"
+                                                            for d in ("oracle", "generated"))]},
+             "simple", "recall", "precision (interpolated)", "PR curves on real_cav/test, AP@0.5, all ranges (first seed)"),
+        _sweep("position_std", "position_std_m", "position noise sigma (m)", "AP vs pose noise"),
+        _sweep("heading_std", "heading_std_deg", "heading noise sigma (deg)", "AP vs heading noise"),
+        _sweep("delay", "delay_ms", "time delay applied (ms)", "AP vs time delay"),
+        _sweep("bits", "bits", "feature bits per value", "AP vs feature quantisation"),
+    ))
 
 
 def cell(v) -> str:

@@ -54,7 +54,15 @@ from typ.config import FusionConfig
 from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
 from typ.io import SCENARIO_MANIFEST, read_json_or_none, seed_dir
-from typ.registry import METHODS, SINGLE_AGENT
+from typ.registry import METHODS, SINGLE_AGENT, Plot, declare
+
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare(
+    "fusion", data=("data/sim/real_cav/train", "data/sim/real_cav/test", "data/sim/source/train",
+                    "data/generated/real_cav/train", "data/generated/target/pretrain"),
+    outs=("artifacts/fusion",),
+    plots=(Plot("fusion_loss", "step", {"artifacts/fusion/loss.csv": ["oracle", "generated"]}, "smooth", "step", "loss",
+                "single-agent detector training loss, true vs generated cooperating views"),))
 
 #: what pre-training set ``both`` is made of, in this order
 BOTH_PARTS = ("colwaymo", "source")

@@ -29,8 +29,13 @@ from typ.geometry import points_in_boxes, pose_to_matrix
 from typ.io import SCENARIO_MANIFEST, atomic_path, hash_files, hash_obj, read_json_or_none, write_manifest
 from typ.scene import AgentView, Scene, vehicle_mask
 from typ.voxel import Grid
+from typ.registry import declare
 
 STAGE = "generate"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("generate", data=("data/sim/target/pretrain", "data/sim/real_cav/train",
+                                        "artifacts/selftrain/generator"),
+                      params=("stage1", "voxelize"), outs=("data/generated",))
 MANIFEST = SCENARIO_MANIFEST
 #: why a reference view or a scenario was not generated, counted per stage run
 SKIP_REASONS = ("reference_too_close", "reference_out_of_range", "scenario_without_candidate_vehicle",

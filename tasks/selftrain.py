@@ -38,8 +38,13 @@ from typ.config import SelftrainConfig, as_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_scenarios, list_timestamps, read_scene, scenario_sensor
 from typ.voxel import Grid
+from typ.registry import TARGET_VOXELS, declare
 
 STAGE = "selftrain"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("selftrain", data=("data/sim/target/train", f"{TARGET_VOXELS}train", "artifacts/vqvae",
+                                         "artifacts/adapt/source_vq", "artifacts/stage1", "artifacts/stage2"),
+                      params=("stage2", "stage1", "voxelize"), outs=("artifacts/selftrain",), loss_curves=True)
 
 
 @dataclass(frozen=True)

@@ -45,8 +45,11 @@ import typ.sim
 from typ.sim import simulate_scenario
 from typ.ssc import occupancy_path, scene_occupancy, write_occupancy
 import typ.ssc
+from typ.registry import declare
 
 STAGE = "simulate"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("simulate", outs=("data/sim",))
 MANIFEST = SCENARIO_MANIFEST
 #: the simulator's and the writer's source: a change to either redoes every scenario
 _CODE = code_digest(typ.sim, typ.geometry, typ.formats.opv2v, typ.formats.pcd, typ.ssc)

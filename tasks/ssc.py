@@ -59,6 +59,12 @@ from typ.ssc import SSC_GRID
 from tasks.ssc_data import (DISPLAY, FOOTPRINT_CELLS, IGNORE, STAGE, TrainingSet, footprint,  # noqa: F401
                             model_kwargs, sample_maps)
 from tasks.ssc_train import network_options, train_fused, train_single  # noqa: F401
+from typ.registry import declare
+
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("ssc", data=("data/sim/real_cav/train", "data/sim/real_cav/test", "data/generated/real_cav/train"),
+                      outs=("artifacts/ssc",), reports=("reports/ssc.md",),
+                      images=("reports/ssc_robustness.png", "reports/ssc_gallery.png"))
 
 
 # ---------------------------------------------------------------- prediction and scores

@@ -34,8 +34,12 @@ from typ.config import Stage1Config, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj, seed_dir
 from typ.metrics.truth import occupancy_iou
+from typ.registry import TARGET_VOXELS, declare
 
 STAGE = "stage1"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("stage1", data=(f"{TARGET_VOXELS}train", f"{TARGET_VOXELS}val", "artifacts/vqvae"),
+                      outs=("artifacts/stage1",), loss_curves=True)
 
 
 def replica_seeds(seed: int, replicas: int) -> list[int]:

@@ -43,8 +43,13 @@ from typ.errors import TypError
 from typ.io import hash_obj
 from typ.resim import EGO_CAR_LWH, resimulated_points
 from typ.voxel import Grid, voxelize
+from typ.registry import declare
 
 STAGE = "stage2"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("stage2", data=("data/sim/source/train", "artifacts/vqvae", "artifacts/adapt/source_vq",
+                                      "artifacts/stage1"),
+                      params=("stage1", "voxelize"), outs=("artifacts/stage2",), loss_curves=True)
 #: symmetries used for ``augment`` = 1, 2, 8 (see :func:`tasks.voxel_data.apply_dihedral`)
 AUGMENTS = {1: (0,), 2: (0, 4), 8: tuple(range(8))}
 

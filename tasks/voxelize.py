@@ -27,10 +27,13 @@ from typ.io import code_digest, hash_files, hidden_below
 from typ.sensors import mount_height
 from typ.store import list_scenes, scene_path, stored_input_hash, write_scene_voxels
 from typ.voxel import Grid, box_map, voxelize
+from typ.registry import declare
 
 log = logging.getLogger(__name__)
 
 STAGE = "voxelize"
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("voxelize", data=("data/sim",), outs=("data/voxels",))
 #: the reader's, voxelizer's and store's source: a change to any redoes every scene
 _CODE = code_digest(typ.formats.opv2v, typ.voxel, typ.store)
 

@@ -23,6 +23,11 @@ from typ.config import AutoencoderConfig, VQVAEStageConfig, as_dict
 from typ.errors import TypError
 from typ.io import hash_obj
 from typ.metrics.truth import occupancy_iou
+from typ.registry import TARGET_VOXELS, declare
+
+#: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
+DECLARATION = declare("vqvae", data=(f"{TARGET_VOXELS}train", f"{TARGET_VOXELS}val"), outs=("artifacts/vqvae",),
+                      loss_curves=True)
 
 KINDS = ("x", "y")
 

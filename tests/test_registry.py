@@ -1,5 +1,6 @@
 """typ.registry: one torch-free home below the config for the names the config offers; the code
 that runs an entry reads it from there (property tests, not copies held equal)."""
+import importlib.machinery
 import subprocess
 import sys
 
@@ -42,16 +43,33 @@ def test_compose_modes_reach_every_command_that_takes_one():
 
 def test_the_stage_list_is_the_registrys_and_a_stage_without_a_declaration_is_named(monkeypatch):
     """One ordered stage list: the config's and dvc.yaml's follow typ.registry.STAGES, kinds
-    included; a registered stage flows/stages.py does not declare is a named error, not a
+    included; each stage's declaration sits in its task module. A registered stage without a task
+    module or a DECLARATION, or a module declaring another stage, is a named error, not a
     pipeline that silently lacks it."""
+    import types
+
+    import tasks
     from flows import stages
     from typ.config import Config
     from typ.errors import TypError
-    from typ.registry import STAGES, StageSpec
+    from typ.registry import STAGES, StageSpec, declare
 
     declared = stages.stages()
     assert Config.STAGES == tuple(STAGES) == tuple(s.name for s in declared)
     assert all((s.kind, s.torch) == (STAGES[s.name].kind, STAGES[s.name].torch) for s in declared)
     monkeypatch.setitem(STAGES, "density", StageSpec("scoring", torch=False))
-    with pytest.raises(TypError, match=r"flows/stages.py.*undeclared \['density'\]"):
+    with pytest.raises(TypError, match=r"tasks/density.py.*module.*missing"):
         stages.stages()
+    module = types.ModuleType("tasks.density")
+    monkeypatch.setitem(sys.modules, "tasks.density", module)
+    monkeypatch.setattr(tasks, "density", module, raising=False)
+    module.__spec__ = importlib.machinery.ModuleSpec("tasks.density", None)
+    with pytest.raises(TypError, match=r"tasks/density.py.*DECLARATION"):
+        stages.stages()
+    module.DECLARATION = declare("simulate")
+    with pytest.raises(TypError, match=r"tasks/density.py.*DECLARATION.*simulate"):
+        stages.stages()
+    module.DECLARATION = declare("density", data=("data/sim",))
+    assert stages.by_name()["density"].data == ("data/sim",) and stages.stages()[-1].kind == "scoring"
+    with pytest.raises(TypError, match=r"typ.registry.STAGES.*nowhere"):
+        declare("nowhere")

@@ -5,7 +5,7 @@ of these tables, and the code that runs them reads the same entries; nothing her
 numpy or any layer above ``typ`` (the implementation an entry names is imported where it runs):
 
 - :data:`STAGES`: the pipeline's stages in run order, with their kind (what each reads and writes
-  is declared in :mod:`flows.stages`).
+  is its task module's ``DECLARATION``, :func:`declare`).
 - :data:`READERS`: the single-agent dataset formats, each naming its functions in :mod:`tasks.ingest`.
 - :data:`SAMPLERS`: the diffusion samplers, as diffusers schedulers (:mod:`models.samplers` builds
   them; :mod:`tasks.ddpm` adds ``pixel`` for samples that live in [-1, 1]).
@@ -36,11 +36,64 @@ class StageSpec:
     (incremental over scenes, content hashes), ``training`` (resumable checkpoints) or
     ``scoring`` (reads trained models, writes reports); ``torch`` whether its code imports torch
     (a stage that does not gets no device set up, and one that is also per-scene is settled
-    without Prefect when every scene is unchanged). What it reads and writes is declared in
-    :mod:`flows.stages`, which dvc.yaml is generated from."""
+    without Prefect when every scene is unchanged). What it reads and writes is its task module's
+    ``DECLARATION`` (:func:`declare`), which dvc.yaml is generated from (:mod:`flows.dvcyaml`)."""
 
     kind: Literal["per-scene", "training", "scoring"]
     torch: bool = True
+
+
+@dataclass(frozen=True)
+class Plot:
+    """One item of dvc.yaml's top-level ``plots:``: ``y`` is {csv path: [columns]}, or one
+    column of the file or folder of CSVs ``id`` names (a folder: one curve per file)."""
+
+    id: str
+    x: str
+    y: dict | str
+    template: str
+    x_label: str
+    y_label: str
+    title: str
+
+
+@dataclass(frozen=True)
+class Stage:
+    """What one stage reads and writes, declared beside its code (``tasks/<name>.py``'s
+    ``DECLARATION``). Paths are relative to the project root."""
+
+    name: str
+    kind: str                                   #: :attr:`StageSpec.kind`
+    data: tuple[str, ...] = ()                  #: data and artifact deps
+    params: tuple[str, ...] = ()                #: config blocks read besides its own
+    outs: tuple[str, ...] = ()                  #: persisted outputs (DVC cache, kept between runs)
+    reports: tuple[str, ...] = ()               #: report files and folders (not cached)
+    images: tuple[str, ...] = ()                #: figures dvc declares as plots (not cached)
+    loss_curves: bool = False                   #: ``<out>/loss/*.csv``, one per network
+    torch: bool = True                          #: :attr:`StageSpec.torch`
+    plots: tuple[Plot, ...] = ()
+
+    @property
+    def metrics(self) -> str:
+        return f"metrics/{self.name}.json"
+
+    @property
+    def blocks(self) -> tuple[str, ...]:
+        """The params blocks it reads: its own first."""
+        return (self.name, *self.params)
+
+
+def declare(name: str, **declared) -> Stage:
+    """The declaration of registered stage ``name`` (what it reads and writes, :class:`Stage`'s
+    fields), with its kind and torch from :data:`STAGES`."""
+    if name not in STAGES:
+        raise TypError("typ.registry.STAGES", name, "an entry for every stage a task module declares", "none")
+    spec = STAGES[name]
+    return Stage(name, spec.kind, torch=spec.torch, **declared)
+
+
+#: the voxel folders of the target domain's splits (``f"{TARGET_VOXELS}train"``)
+TARGET_VOXELS = "data/voxels/dataset=target/split="
 
 
 #: every stage, in the order ``dvc repro`` runs them; the config has a block of each name
