@@ -202,7 +202,8 @@ class FusionMethod:
     (None: it is trained itself); options: the config block of the module's extra constructor
     arguments (None: none); message: what a cooperating agent sends (``nothing``, ``points``,
     ``boxes``, ``features``); warm_start: whether it may start from the single-agent detector
-    (:meth:`models.fusion.FusionModule.warm_start`).
+    (:meth:`models.fusion.FusionModule.warm_start`); short: its row in the one-page summary
+    (``reports/summary.md``; empty: ``display``).
 
     The order of :data:`METHODS` is the order of the tables and benches.
     """
@@ -216,6 +217,12 @@ class FusionMethod:
     trained_as: str | None = None
     options: str | None = None
     warm_start: bool = False
+    short: str = ""
+
+    @property
+    def summary_name(self) -> str:
+        """Its row in the one-page summary."""
+        return self.short or self.display
 
     @property
     def network(self) -> str:
@@ -235,10 +242,11 @@ class FusionMethod:
 
 #: every fusion method, in bench order
 METHODS: dict[str, FusionMethod] = {m.name: m for m in (
-    FusionMethod("none", "No Fusion", "NoFusion", inputs="ego", targets="own", message="nothing", trained_as="late"),
+    FusionMethod("none", "No Fusion", "NoFusion", inputs="ego", targets="own", message="nothing", trained_as="late",
+                 short="No fusion"),
     FusionMethod("early", "Early Fusion", "EarlyFusion", inputs="merged", targets="fused", message="points",
-                 warm_start=True),
-    FusionMethod("late", "Late Fusion", "LateFusion", inputs="agents", targets="own", message="boxes"),
+                 warm_start=True, short="Early"),
+    FusionMethod("late", "Late Fusion", "LateFusion", inputs="agents", targets="own", message="boxes", short="Late"),
     FusionMethod("attfuse", "AttFuse", "AttFuse", inputs="agents", targets="fused", message="features",
                  warm_start=True),
     FusionMethod("v2xvit", "V2X-ViT", "V2XViT", inputs="agents", targets="fused", message="features",

@@ -13,6 +13,7 @@ from pathlib import Path
 from typ.config import FUSION_METHODS, Config
 from typ.io import write_text
 from typ.metrics.intervals import Interval
+from typ.registry import METHODS
 from typ.reporting import markdown_table
 
 #: ``evaluate``'s generation rows, as the generation report names them
@@ -22,13 +23,20 @@ GENERATION_ROWS = {"generated": "what `generate` writes", "cast": "cast view (on
                    "stage1_only": "stage 1 alone", "resim": "re-simulation", "naive_copy": "copy the ego's view"}
 GENERATION_KEYS = (("iou", "IoU"), ("iou_above_ground", "above ground"), ("object_hit_rate", "hit rate"),
                    ("jsd_r2dm", "JSD"))
-FUSION_NAMES = {"none": "No fusion", "early": "Early", "late": "Late", "attfuse": "AttFuse", "v2xvit": "V2X-ViT"}
+
+
+def fusion_name(method: str) -> str:
+    """A fusion method's row: its registry entry's summary name, a name the registry does not hold
+    (metrics of an older run) as it is."""
+    return METHODS[method].summary_name if method in METHODS else method
 
 
 def fusion_order(method: str) -> tuple[int, str]:
     """Where a fusion method's row goes: the registry's order (``typ.config.FUSION_METHODS``), a name
     it does not hold (metrics of an older run) after them by name; never an error."""
     return (FUSION_METHODS.index(method), "") if method in FUSION_METHODS else (len(FUSION_METHODS), method)
+
+
 PRETRAIN_NAMES = {"scratch": "scratch", "colwaymo": "generated target", "source": "source sim"}
 
 
@@ -102,7 +110,7 @@ def _fusion(evaluate: dict) -> list[str]:
     rows = []
     for method, row in sorted(f["table1"].items(), key=lambda kv: fusion_order(kv[0])):
         ap = {data: (cell or {}).get("ap50", {}).get("overall") for data, cell in row.items()}
-        rows.append([FUSION_NAMES.get(method, method), iv(ap.get("oracle") or ap.get("ego"), 2),
+        rows.append([fusion_name(method), iv(ap.get("oracle") or ap.get("ego"), 2),
                      iv(ap.get("generated"), 2)])
     lines.append(markdown_table(["method", "true cooperating views", "generated ones"], rows))
     t3 = f.get("table3", {})
@@ -112,7 +120,7 @@ def _fusion(evaluate: dict) -> list[str]:
         table = []
         for method, rows in sorted(t3.items(), key=lambda kv: fusion_order(kv[0])):
             for i, source in enumerate(s for s in PRETRAIN_NAMES if s in rows):
-                table.append([FUSION_NAMES.get(method, method) if i == 0 else "", PRETRAIN_NAMES[source],
+                table.append([fusion_name(method) if i == 0 else "", PRETRAIN_NAMES[source],
                               *(iv((rows[source].get(c) or {}).get("ap50", {}).get("overall"), 2) for c in columns)])
         lines += ["", "Pre-trained, then fine-tuned on n real scenes with scratch's steps on the same scenes:", "",
                   markdown_table(["method", "pre-training", *(f"{c} sc." for c in columns)], table)]
@@ -126,7 +134,7 @@ def _ssc(ssc: dict | None) -> list[str]:
     data = [d for d in ("perfect", "generated", "noisy") if d in tables]
     lines = ["## Collaborative semantic scene completion (V2VSSC Table I), IoU / mIoU", "",
              "Full table, classes and robustness: [ssc.md](ssc.md).", ""]
-    rows = [[FUSION_NAMES.get(method, method),
+    rows = [[fusion_name(method),
              *(f"{iv(tables[d][method].get('iou'), 2)} / {iv(tables[d][method].get('miou'), 2)}"
                if method in tables[d] else "—" for d in data)]
             for method in sorted({m for d in data for m in tables[d]}, key=fusion_order)]
