@@ -126,6 +126,7 @@ def list_dataset(fmt: str, root: str | Path, *, sensor: str | None = None
     if sensor is not None:
         resolve(sensor, where="typ", field="--sensor / sensor")
     scenarios, splits = READERS[fmt].find(root)
+    scenarios = [READERS[fmt].scenario(s) for s in scenarios]
     if not scenarios:
         raise TypError(root, "root", f"{fmt} frames ({READERS[fmt].spec.layout})", "none found")
     if sensor is not None or READERS[fmt].estimate is not None:
@@ -284,8 +285,9 @@ class Reader:
     the LiDAR preset a scenario's scans show (None: the preset ``spec.sensor`` names, or the one of
     the format's name); ``--sensor`` names another.
 
-    A new format is its reader (``typ/formats/<name>.py``), its ``find``/``frames`` functions here
-    and an entry in :data:`typ.registry.READERS` naming them (the config offers its name from there)."""
+    A new format is one module ``typ/formats/<name>.py`` holding its frame reader and its ``find``
+    (scenarios as ``(name, files, parts)`` tuples) and ``frames`` functions, and an entry in
+    :data:`typ.registry.READERS` naming them (the config offers its name from there)."""
 
     name: str
     spec: ReaderSpec
@@ -302,6 +304,16 @@ class Reader:
     @property
     def preset(self) -> str:
         return self.spec.sensor or self.name
+
+    def scenario(self, found) -> DatasetScenario:
+        """One scenario ``find`` listed: a :class:`DatasetScenario`, or ``(name, files, parts)`` from
+        a reader that lives below ``tasks/`` (a format module: ``typ/formats/<name>.py``)."""
+        if isinstance(found, DatasetScenario):
+            return found
+        if not isinstance(found, tuple) or len(found) not in (2, 3) or not isinstance(found[0], str):
+            raise TypError(self.spec.find, "scenario", "a DatasetScenario or a (name, files, parts) tuple",
+                           type(found).__name__)
+        return DatasetScenario(self.name, found[0], tuple(Path(f) for f in found[1]), *found[2:])
 
     def lift(self, lidar: str) -> float:
         """Height of ``lidar`` (a preset name) above the frame this format's points come in: its
