@@ -31,13 +31,13 @@ $(STAMP): requirements.txt requirements.lock pyproject.toml
 	    apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; \
 	  else echo "warning: libusb-1.0-0 is missing and we are not root; open3d may fail to import"; fi; \
 	fi
-	@# optional: only the real-browser check of the MLflow UI (tests/test_mlflow_ui.py) needs it
+	@# optional: only the real-browser check of the MLflow UI (tests/unit/flows/test_mlflow_ui.py) needs it
 	@if ! command -v chromium >/dev/null 2>&1; then \
 	  if [ "$$(id -u)" = 0 ]; then \
 	    echo "the MLflow UI browser test needs chromium: installing it with apt"; \
 	    (apt-get update -qq && apt-get install -y -qq chromium >/dev/null) || \
-	      echo "warning: could not install chromium; tests/test_mlflow_ui.py will be skipped"; \
-	  else echo "note: chromium is missing and we are not root; tests/test_mlflow_ui.py will be skipped"; fi; \
+	      echo "warning: could not install chromium; tests/unit/flows/test_mlflow_ui.py will be skipped"; \
+	  else echo "note: chromium is missing and we are not root; tests/unit/flows/test_mlflow_ui.py will be skipped"; fi; \
 	fi
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	# torch first, alone, with pip (which takes the CPU wheel on this machine's disk; uv does not

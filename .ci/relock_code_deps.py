@@ -3,7 +3,7 @@
     .venv/bin/python .ci/relock_code_deps.py
 
 For a change that leaves every stage's outputs as they are (check that first: re-run the stages it
-touches on a make-run workspace and compare the bytes): tests/test_dvc.py wants each code folder's
+touches on a make-run workspace and compare the bytes): tests/e2e/test_dvc.py wants each code folder's
 lock entry to cover the files git tracks there. Data dependencies, params and outs stay as locked;
 a stage that gained a dependency other than code must be run instead (this script refuses)."""
 from __future__ import annotations

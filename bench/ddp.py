@@ -15,7 +15,7 @@ condition) in four set-ups, measured side by side in one run, each in its own pr
 s/step: median time between consecutive logged steps after the first two (model building,
 imports and process start-up excluded). Speed-up: the 1-process, 1-thread s/step over the
 set-up's. max |Δθ|: the largest parameter difference to the 1-process, 1-thread run after the
-same steps (float rounding only; ``tests/test_ddp.py`` checks the same within tolerance).
+same steps (float rounding only; ``tests/unit/typ/test_ddp.py`` checks the same within tolerance).
 Writes ``<out>/bench_ddp.md`` and ``<out>/bench_ddp.png``.
 """
 from __future__ import annotations

@@ -11,7 +11,7 @@ keeps a deadline (``--minutes``): every phase and every training step checks the
 what it measured. A phase that fails has its traceback kept in ``results.json``; the next runs.
 
 Phases:
-- ``tests``: tests/test_cuda.py under pytest in a subprocess (every test, ``-x`` off) ->
+- ``tests``: tests/e2e/test_cuda.py under pytest in a subprocess (every test, ``-x`` off) ->
   ``tests.xml`` (JUnit) and its summary;
 - ``timings``: training steps/s and samples/s of each network, through its stage's own training
   function (the generator's at bench/gpu.yaml's size, the detectors' and the pixel DDPM's at the
@@ -153,7 +153,7 @@ def cpu_model() -> str:
 
 def run_tests(run: Run, record: dict) -> None:
     xml = run.out / "tests.xml"
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfEs", "tests/test_cuda.py",
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfEs", "tests/e2e/test_cuda.py",
            f"--junitxml={xml}"]
     timeout = max(10.0, run.phase_left("tests"))
     record["command"] = " ".join(cmd[1:])

@@ -141,9 +141,9 @@ def timing_section(results: dict, cpu: dict | None) -> list[str]:
 def tests_section(results: dict) -> list[str]:
     t = results["phases"].get("tests")
     if not t or "tests" not in t:
-        return [] if not t else ["## CUDA tests", "", f"tests/test_cuda.py did not report: {t.get('status')}", ""]
+        return [] if not t else ["## CUDA tests", "", f"tests/e2e/test_cuda.py did not report: {t.get('status')}", ""]
     lines = ["## CUDA tests", "",
-             f"tests/test_cuda.py: {t['passed']} passed, {t['failures']} failed, {t['errors']} errors, "
+             f"tests/e2e/test_cuda.py: {t['passed']} passed, {t['failures']} failed, {t['errors']} errors, "
              f"{t['skipped']} skipped of {t['tests']} ({t.get('seconds', '?')} s).", ""]
     bad = [c for c in t["cases"] if c["outcome"] in ("failure", "error")]
     if bad:

@@ -12,7 +12,7 @@ of earlier runs, and rewrites <out>/bench_pipeline.md and .png from every sectio
 stamped with when and on which machine it was measured.
 
 - pipeline: a throwaway copy of the project in /tmp (git-tracked and untracked files, .venv
-  linked, `git init`; as tests/test_pipeline_e2e.py does; the stages import the copy's code,
+  linked, `git init`; as tests/e2e/test_pipeline_e2e.py does; the stages import the copy's code,
   through PYTHONPATH) with the e2e test's small params and N = --scale scenarios in every
   split they use. Three `dvc repro` runs, one after another: from nothing (full), again with
   nothing changed (no-op), and after adding one scenario to target/test (incremental; a split

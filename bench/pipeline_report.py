@@ -9,6 +9,7 @@ import math
 import os
 import re
 import statistics
+import sys
 from pathlib import Path
 
 from bench.report import machine, machine_line
@@ -20,12 +21,15 @@ SECTIONS = ("pipeline", "overhead", "skipping", "paper", "fusion")
 
 
 def _e2e_params() -> dict:
-    """The e2e test's small params (tests/test_pipeline_e2e.py ``SMALL``), read from the test itself
+    """The e2e test's small params (tests/e2e/test_pipeline_e2e.py ``SMALL``), read from the test itself
     so that the two cannot drift apart: a copy kept here lost the fusion robustness and ddpm
     settings the stages gained since, and its fusion stage then failed on 2-frame sequences."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("_typ_e2e", REPO / "tests" / "test_pipeline_e2e.py")
+    helpers = str(REPO / "tests" / "helpers")   # the module's own imports (tests/conftest.py adds it under pytest)
+    if helpers not in sys.path:
+        sys.path.insert(0, helpers)
+    spec = importlib.util.spec_from_file_location("_typ_e2e", REPO / "tests" / "e2e" / "test_pipeline_e2e.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return copy.deepcopy(module.SMALL)

@@ -5,7 +5,7 @@ Four numbers per set, all from point clouds (LiDAR DDPM §IV-1, after LiDM):
 - JSD, MMD: :func:`typ.metrics.jsd_bev` / :func:`typ.metrics.mmd_bev` under the ``r2dm`` preset
   (``typ.metrics.PRESETS["r2dm"].convention``), computed here from per-scan BEV histograms so
   that the bootstrap can resample scans; the full-set values equal the typ.metrics functions'
-  (tests/test_ddpm.py). A generated scan with no point in the field adds nothing to the JSD
+  (tests/unit/tasks/test_ddpm.py). A generated scan with no point in the field adds nothing to the JSD
   and counts as an all-zero grid in the MMD (r2dm's code would divide by zero).
 - FRID, FPVD: Fréchet distances (:mod:`typ.metrics.frechet`) between real and generated features
   of typ's own range-image and voxel networks (:mod:`tasks.lidar_features`): comparable within

@@ -2,10 +2,15 @@
 pytest-xdist (``make test`` runs 2 workers) each worker and the processes it starts use one
 thread, and the long files are handed out first so that they do not end the run alone."""
 import os
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 from hypothesis import settings
+
+# the tests' own modules: helpers (tests/helpers) and the bad-input corpus package (tests/fuzz/bad_inputs)
+sys.path[:0] = [str(Path(__file__).resolve().parent / "helpers"), str(Path(__file__).resolve().parent / "fuzz")]
 
 settings.register_profile("ci", derandomize=True, print_blob=True)
 settings.register_profile("dev", print_blob=True)

@@ -146,7 +146,7 @@ def points_in_boxes(points, boxes) -> np.ndarray:
     plus a margin for round-off) of its centre, found by binary search in the points sorted by x;
     those get the exact test. 50 k points against 30 boxes: 77 ms testing every pair, 16 ms this
     way (2-core AMD EPYC); the answer is the same bit for bit (the same arithmetic on every point
-    that can be inside; tests/test_geometry.py checks it against the test of every pair)."""
+    that can be inside; tests/unit/typ/test_geometry.py checks it against the test of every pair)."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
     b = _as_f64(boxes, (7,), "boxes").reshape(-1, 7)
     out = np.zeros((len(pts), len(b)), dtype=bool)

@@ -6,7 +6,7 @@ that: fields ``x y z rgb`` (float32; ``rgb`` packed as uint32 ``R<<16 | G<<8 | B
 with R = G = B = round(intensity * 255), so the cloud shows grey in viewers) and,
 when semantics are given, one more field ``semantic`` (uint8, codes from
 :data:`typ.scene.SEMANTIC_CLASSES`). Open3D 0.20's reader skips the extra field and
-still returns the points and colours (verified in tests/test_formats_pcd.py), so no
+still returns the points and colours (verified in tests/unit/typ/test_formats_pcd.py), so no
 sidecar file is needed.
 
 :func:`read_pcd` reads ``ascii``, ``binary`` and ``binary_compressed`` (LZF) data, any
