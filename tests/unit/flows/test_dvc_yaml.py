@@ -67,21 +67,27 @@ def test_a_stage_added_to_the_registry_gets_its_code_params_and_outputs(monkeypa
     assert yaml.safe_load(dvcyaml.render(tmp_path)) == built
 
 
-def test_typ_dvc_yaml_check_fails_on_drift_and_writes_the_file(tmp_path):
+def test_typ_dvc_yaml_check_fails_on_drift_and_writes_the_file(tmp_path, capsys):
+    """``typ dvc-yaml --check`` on another root: 0 on the committed file, 1 with a diff and the
+    command to run on drift, and ``typ dvc-yaml`` writes what it gives (the CLI's own entry point,
+    in this process: a subprocess would import every stage's task module again for nothing)."""
     import shutil
+
+    from cli.main import main
 
     project = tmp_path / "p"
     for package in dvcyaml.PACKAGES:   # what code deps are computed from
         shutil.copytree(ROOT / package, project / package, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "dvc.yaml", project / "dvc.yaml")
-    typ = [sys.executable, "-m", "cli.main", "--root", str(project), "dvc-yaml"]
-    ok = subprocess.run([*typ, "--check"], cwd=ROOT, capture_output=True, text=True)
-    assert ok.returncode == 0, ok.stderr
+    typ = ["--root", str(project), "dvc-yaml"]
+    assert main([*typ, "--check"]) == 0, capsys.readouterr().err
+    capsys.readouterr()
     (project / "dvc.yaml").write_text((project / "dvc.yaml").read_text().replace("    - tasks/realism.py\n", ""))
-    drift = subprocess.run([*typ, "--check"], cwd=ROOT, capture_output=True, text=True)
-    assert drift.returncode == 1 and "-    - tasks/realism.py" not in drift.stdout and "+    - tasks/realism.py" in drift.stdout
-    assert "typ dvc-yaml" in drift.stderr
-    assert subprocess.run(typ, cwd=ROOT, capture_output=True).returncode == 0
+    assert main([*typ, "--check"]) == 1
+    drift = capsys.readouterr()
+    assert "-    - tasks/realism.py" not in drift.out and "+    - tasks/realism.py" in drift.out
+    assert "typ dvc-yaml" in drift.err
+    assert main(typ) == 0
     assert (project / "dvc.yaml").read_text() == (ROOT / "dvc.yaml").read_text()
 
 
