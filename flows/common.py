@@ -19,7 +19,7 @@ from tasks.scene_stage import SceneStage
 from typ.config import Config, load_config
 from typ.errors import TypError
 from typ.io import output_lock, remove_stale_temporaries, remove_written, temporaries, write_json, written_by
-from typ.tracking import is_main_process, stage_run
+from typ.tracking import is_main_process, stage_run, stage_seconds
 
 log = logging.getLogger("typ")
 
@@ -243,7 +243,12 @@ def write_metrics(stage: str, metrics: dict, root: Path = Path(".")) -> Path:
 def finish_stage(stage: str, run, metrics: dict, root: Path, *, artifacts=()) -> Path:
     """The end every stage flow shares: ``metrics/<stage>.json`` for DVC, the numbers to the
     MLflow run, and the metrics file plus ``artifacts`` (paths, or (path, folder) pairs) as
-    the run's artifacts."""
+    the run's artifacts. A stage whose metrics time no work of their own (no ``seconds_total`` or
+    ``seconds_training``, :func:`typ.tracking.stage_seconds`) gets its run's wall time as
+    ``seconds_total``, so that every stage's row in the summary has its seconds."""
+    started = getattr(run, "started", None)
+    if started is not None and stage_seconds(metrics) is None:
+        metrics = {**metrics, "seconds_total": round(time.perf_counter() - started, 3)}
     path = write_metrics(stage, metrics, root)
     run.metrics(numeric_leaves(metrics))
     for item in (path, *artifacts):

@@ -15,6 +15,7 @@ from typ.io import write_text
 from typ.metrics.intervals import Interval
 from typ.registry import METHODS
 from typ.reporting import markdown_table
+from typ.tracking import stage_seconds
 
 #: ``evaluate``'s generation rows, as the generation report names them
 GENERATION_ROWS = {"generated": "what `generate` writes", "cast": "cast view (one scene, the reference LiDAR)",
@@ -47,17 +48,6 @@ def iv(cell: dict | None, digits: int = 3) -> str:
     if cell.get("low") is None or cell.get("high") is None:
         return f"{cell['value']:.{digits}f}"
     return Interval(cell["value"], cell["low"], cell["high"]).text(digits)
-
-
-def stage_seconds(metrics: dict) -> float | None:
-    """The seconds of work a stage reports: ``seconds_total``, else ``seconds_training``, else the
-    sum of the ``seconds_training`` of its blocks (one per model or seed); None where it reports none."""
-    for key in ("seconds_total", "seconds_training"):
-        if isinstance(metrics.get(key), (int, float)):
-            return float(metrics[key])
-    nested = [stage_seconds(v) for v in metrics.values() if isinstance(v, dict)]
-    nested = [s for s in nested if s is not None]
-    return float(sum(nested)) if nested else None
 
 
 def _commit(root: Path) -> str:

@@ -188,6 +188,17 @@ def stage_run(stage: str, cfg: Config, *, root: Path | str = ".", tags: dict[str
             raise
 
 
+def stage_seconds(metrics: dict) -> float | None:
+    """The seconds of work a stage reports: ``seconds_total``, else ``seconds_training``, else the
+    sum of the ``seconds_training`` of its blocks (one per model or seed); None where it reports none."""
+    for key in ("seconds_total", "seconds_training"):
+        if isinstance(metrics.get(key), (int, float)):
+            return float(metrics[key])
+    nested = [stage_seconds(v) for v in metrics.values() if isinstance(v, dict)]
+    nested = [s for s in nested if s is not None]
+    return float(sum(nested)) if nested else None
+
+
 class StageRun:
     """Thin handle so tasks never import mlflow themselves.
 
@@ -201,6 +212,8 @@ class StageRun:
         self._mlflow = mlflow
         self._client = MlflowClient()
         self.run_id = run_id
+        #: when the stage's run began (perf_counter): the wall time of a stage that times no work itself
+        self.started = time.perf_counter()
 
     def metrics(self, values: dict[str, float], step: int | None = None) -> None:
         from mlflow.entities import Metric

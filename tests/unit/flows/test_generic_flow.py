@@ -161,3 +161,23 @@ def test_scoped_environment_restores_and_defaults_never_override_the_user(monkey
     with pipeline.scoped_environ({"TYP_PROBE_A": "1", "TYP_PROBE_B": "2"}):   # set, then as they were
         assert (os.environ["TYP_PROBE_A"], os.environ["TYP_PROBE_B"]) == ("1", "2")
     assert "TYP_PROBE_A" not in os.environ and os.environ["TYP_PROBE_B"] == "user"
+
+
+def test_a_stage_that_times_no_work_gets_its_runs_wall_time_and_one_that_does_keeps_its_own(tmp_path):
+    """Every stage's row in the summary has its seconds: metrics without ``seconds_total`` or
+    ``seconds_training`` (stage2, selftrain, evaluate) get the run's wall time; a stage's own
+    timing, flat or per model, is left as it is."""
+    import time
+
+    from flows.common import finish_stage
+    from typ.tracking import stage_seconds
+
+    run = Recorder()
+    run.started = time.perf_counter() - 2.5
+    finish_stage("stage2", run, {"train_pairs": 12}, tmp_path)
+    written = json.loads((tmp_path / "metrics" / "stage2.json").read_text())
+    assert written["train_pairs"] == 12 and 2.5 <= written["seconds_total"] < 60 and run.logged["seconds_total"] >= 2.5
+    for own in ({"seconds_total": 7.0}, {"seed_0": {"seconds_training": 3.0}, "seed_1": {"seconds_training": 4.0}}):
+        finish_stage("stage1", run, own, tmp_path)
+        written = json.loads((tmp_path / "metrics" / "stage1.json").read_text())
+        assert written == own and stage_seconds(written) == 7.0

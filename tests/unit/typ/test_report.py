@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import json
 
-from typ.report import iv, stage_seconds, write_summary
+from typ.report import iv, write_summary
+from typ.tracking import stage_seconds
 
 
 def _cell(value: float, low: float, high: float) -> dict:
