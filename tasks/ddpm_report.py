@@ -15,7 +15,7 @@ from tasks.ddpm_metrics import METRICS, overlaps
 from typ.compare import pareto_front
 from typ.io import atomic_path, write_text
 from typ.metrics import PRESETS
-from typ.reporting import markdown_table
+from typ.reporting import interval_cell, markdown_table
 
 FAST_MAX_STEPS = 50
 LABELS = {name: metric.label for name, metric in METRICS.items()}
@@ -32,12 +32,8 @@ def label(row: dict) -> str:
 
 
 def _interval(cell, scale: float = 1.0, digits: int = 3) -> str:
-    if cell is None:  # a metric that does not apply to the row
-        return "–"
-    est, lo, hi = (v * scale for v in cell)
-    if any(math.isnan(v) for v in (est, lo, hi)):
-        return "–"
-    return f"{est:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+    """A (value, low, high) cell; None (a metric that does not apply to the row): –."""
+    return interval_cell(None if cell is None else tuple(cell), digits, scale=scale)
 
 
 def _cells(row: dict) -> list[str]:

@@ -30,7 +30,7 @@ from tasks.scene_stage import StageResult
 from typ.io import write_text
 from typ.metrics.intervals import Interval
 from typ.registry import METHODS, PLOTTED_GENERATION_METHODS, Plot, declare
-from typ.reporting import markdown_table
+from typ.reporting import interval_cell, markdown_table
 
 LOG = logging.getLogger(__name__)
 
@@ -77,12 +77,7 @@ DECLARATION = declare(
 
 
 def cell(v) -> str:
-    if isinstance(v, Interval):
-        if not np.isfinite(v.value):
-            return "–"
-        digits = 5 if abs(v.value) < 0.01 and v.value != 0 else 3
-        return v.text(digits) if np.isfinite(v.low) else f"{v.value:.{digits}f}"
-    return "–" if v is None else str(v)
+    return interval_cell(v, adaptive=True) if v is None or isinstance(v, Interval) else str(v)
 
 
 def table(rows: dict[str, dict], columns: list[tuple[str, str]], first: str = "method") -> str:

@@ -14,7 +14,7 @@ from tasks.fusion_score import BANDS as SCORED_BANDS, IOU_THRESHOLDS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
 from typ.registry import COMPOSE_MODES, METHODS
-from typ.reporting import markdown_table
+from typ.reporting import interval_cell, markdown_table
 
 #: the range bands and AP figures the scorer declares (tasks.fusion_score), with their headers
 BANDS = tuple((band, "all" if band == "overall" else band.replace("-", "–")) for band in SCORED_BANDS)
@@ -27,9 +27,7 @@ PRETRAIN = {"scratch": "scratch", "colwaymo": "generated target (ColWaymo)", "so
 
 
 def _iv(c: dict | None) -> str:
-    if c is None:
-        return "—"
-    return f"{c['value']:.2f} [{c['low']:.2f}, {c['high']:.2f}]" if c.get("low") is not None else f"{c['value']:.2f}"
+    return interval_cell(c, 2, missing="—")
 
 
 def _value(cell: dict | None, key: str = "ap50", band: str = "overall") -> dict | None:

@@ -16,7 +16,7 @@ from tasks import novel_view as nvt
 from typ.io import write_json, write_text
 from typ.metrics import novel_view as nv
 from typ.metrics.intervals import Interval
-from typ.reporting import markdown_table
+from typ.reporting import interval_cell, markdown_table
 
 JSON_NAME, REPORT_NAME = "novel_view.json", "novel_view.md"
 #: the report's main table: (metric, header)
@@ -47,9 +47,7 @@ CONVENTIONS = {
 
 
 def _cell(iv: Interval | None, digits: int = 3) -> str:
-    if iv is None or not np.isfinite(iv.value):
-        return "–"
-    return iv.text(digits) if np.isfinite(iv.low) else f"{iv.value:.{digits}f}"
+    return interval_cell(iv, digits)
 
 
 def models(result: nvt.BenchmarkResult) -> dict[str, str]:

@@ -11,7 +11,7 @@ from tasks.ssc_data import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
 from typ.config import SscConfig
 from typ.io import atomic_path, write_text
 from typ.metrics.ssc import FIGURES as SSC_FIGURES, SSC_CLASSES
-from typ.reporting import markdown_table
+from typ.reporting import interval_cell, markdown_table
 
 #: Table I's columns: (figure, header), the figures typ.metrics.ssc declares with a header
 COLUMNS = tuple((figure, header) for figure, header in SSC_FIGURES.items() if header)
@@ -43,7 +43,7 @@ def _joined(names: list[str]) -> str:
 
 
 def _pct(cell: dict) -> str:
-    return f"{100 * cell['value']:.1f} [{100 * cell['low']:.1f}, {100 * cell['high']:.1f}]"
+    return interval_cell(cell, 1, scale=100)
 
 
 def _table(rows: dict) -> list[str]:

@@ -12,9 +12,8 @@ from pathlib import Path
 
 from typ.config import FUSION_METHODS, Config
 from typ.io import write_text
-from typ.metrics.intervals import Interval
 from typ.registry import METHODS
-from typ.reporting import markdown_table
+from typ.reporting import interval_cell, markdown_table
 from typ.tracking import stage_seconds
 
 #: ``evaluate``'s generation rows, as the generation report names them
@@ -42,12 +41,8 @@ PRETRAIN_NAMES = {"scratch": "scratch", "colwaymo": "generated target", "source"
 
 
 def iv(cell: dict | None, digits: int = 3) -> str:
-    """``value [low, high]`` of an interval cell; — where there is none."""
-    if not isinstance(cell, dict) or cell.get("value") is None:
-        return "—"
-    if cell.get("low") is None or cell.get("high") is None:
-        return f"{cell['value']:.{digits}f}"
-    return Interval(cell["value"], cell["low"], cell["high"]).text(digits)
+    """``value [low, high]`` of an interval cell of the metrics JSON; — where there is none."""
+    return interval_cell(cell if isinstance(cell, dict) else None, digits, missing="—")
 
 
 def _commit(root: Path) -> str:

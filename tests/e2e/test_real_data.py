@@ -24,7 +24,7 @@ import pytest
 import yaml
 
 from tasks.simulate import plan_jobs, run_job
-from test_crash_safety import run_stages, stage_env
+from stage_processes import run_stages, stage_env
 from typ.config import SourceConfig, config_from_dict
 from typ.errors import TypError
 from typ.formats.opv2v import list_agents, list_timestamps, read_scene, write_scene

@@ -438,7 +438,7 @@ sys.exit(main(["--root", str(root), "run", "simulate"]))
 
 
 def test_a_second_run_of_a_stage_is_refused_while_the_first_runs(tmp_path, request, tmp_path_factory):
-    from test_crash_safety import make_project, stage_env
+    from stage_processes import make_project, stage_env
 
     env = stage_env(request.config, tmp_path_factory)
     zero = {"train": 0, "test": 0}

@@ -19,7 +19,7 @@ import pytest
 
 from bad_inputs.make_corpus import CASES, KINDS, Case
 from bounded import run_bounded
-from test_crash_safety import stage_env
+from stage_processes import stage_env
 
 READERS = {"binfile", "pcd", "opv2v", "kitti", "nuscenes", "waymo", "store", "voxel", "params", "cli", "artifact",
            "show", "io", "kitti-odometry"}

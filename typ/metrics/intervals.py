@@ -38,9 +38,10 @@ class Interval:
         return {"value": self.value, "low": self.low, "high": self.high}
 
     def text(self, digits: int = 3) -> str:
-        if not np.isfinite(self.value):
-            return "–"
-        return f"{self.value:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+        """``value [low, high]`` (:func:`typ.reporting.interval_cell`, the one way reports print it)."""
+        from typ.reporting import interval_cell
+
+        return interval_cell(self, digits)
 
 
 METHODS = ("percentile", "basic", "recentred")

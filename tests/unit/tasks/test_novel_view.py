@@ -199,7 +199,7 @@ def test_intervals_resample_ego_frames_and_differences_are_paired():
 @pytest.fixture(scope="module")
 def tiny_generator():
     from tasks.generate import Generator
-    from test_pipeline import _pipeline
+    from tiny_pipeline import tiny_pipeline as _pipeline
 
     return Generator(_pipeline(), {}, "test", 0.4)
 
