@@ -2,7 +2,7 @@
 
 Pure functions of the results dict (:func:`tasks.fusion_score.score` plus what the stage adds):
 TYP Tables 1–3 as AP@0.5 / AP@0.7 by range with 95 % bootstrap intervals, the comparisons the
-issue's targets name ("beats" only where intervals do not overlap), PR curves and robustness
+paper's claims rest on ("beats" only where intervals do not overlap), PR curves and robustness
 curves. :func:`write_report` is the one entry point (the ``evaluate`` stage can call it too).
 """
 from __future__ import annotations
@@ -74,7 +74,7 @@ def _above(a: dict | None, b: dict | None) -> bool | None:
 
 
 def targets(results: dict) -> dict:
-    """The issue's target figures, measured: no fusion's AP@0.5; each fusion method against no
+    """The figures the paper's claims rest on, measured: no fusion's AP@0.5; each fusion method against no
     fusion (overall and 50–100 m, intervals apart); V2X-ViT against late fusion; generated /
     oracle AP@0.5 per method; pre-training on ColWaymo against scratch at the smallest
     fine-tuning set; robustness falling with noise and delay."""

@@ -55,7 +55,7 @@ class Figure:
     lower_is_better: bool = False
 
 
-#: every figure of a pair, in the JSON's order (the first nine are the issue's METRIC names)
+#: every figure of a pair, in the JSON's order (the first nine are the benchmark's headline figures)
 METRICS: dict[str, Figure] = {
     "chamfer": Figure("Chamfer (m²)", True), "fscore": Figure("F-score"), "precision": Figure("precision"),
     "recall": Figure("recall"), "depth_rmse": Figure("depth RMSE (m)", True),
