@@ -6,162 +6,25 @@ Exit codes: 0 done, 2 bad input (params, files, arguments: the message names whi
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import os
-import signal
-import subprocess
 import sys
 from pathlib import Path
 
+from flows.run import run_command, setup_env, with_server
 from typ.config import COMPOSE, SINGLE_AGENT_FORMATS, Config
 from typ.errors import TypError
-from typ.hashcache import ENV as HASH_CACHE_ENV
 from typ.io import check_folder
 
 STAGES = Config.STAGES
-#: loggers of typ's own code (typ.*, tasks.*), included in Prefect's logging by :func:`_setup_env`
-STAGE_LOGGERS = ("typ", "tasks")
-
-
-def _setup_env(root: Path) -> None:
-    # Prefect keeps its state inside the project and runs without a server by default.
-    os.environ.setdefault("PREFECT_HOME", str((root / ".prefect").resolve()))
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("DO_NOT_TRACK", "1")
-    # MLflow takes DO_NOT_TRACK only as "true": without this, every stage process fetches a
-    # telemetry config from the internet and posts usage records at exit (a second, offline)
-    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-    # the ephemeral API server's 20 s default start-up limit is missed on a loaded 2-core machine
-    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
-    os.environ.setdefault("DVC_NO_ANALYTICS", "1")
-    # input hashes of unchanged files, keyed by their stat (typ.hashcache): a no-op stage reads nothing
-    os.environ.setdefault(HASH_CACHE_ENV, str((root / ".typ" / "hashes.sqlite").resolve()))
-    # the stage code's loggers go to the Prefect API with the flow run's (its UI shows them);
-    # outside a run they stay local without Prefect's "no flow run" warning
-    extra = [n for n in os.environ.get("PREFECT_LOGGING_EXTRA_LOGGERS", "").split(",") if n.strip()]
-    os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"] = ",".join(extra + [n for n in STAGE_LOGGERS if n not in extra])
-    os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
-    if not os.environ.get("PREFECT_API_URL") and "prefect" not in sys.modules:
-        # every Prefect server this process tree starts (a local one, Prefect's temporary one)
-        # asks for the project's secret and every client sends it; a server that PREFECT_API_URL
-        # names is the user's, with the user's auth. Prefect reads its settings once, when
-        # imported: after that (typ called in-process) its client would not send what its
-        # temporary server, started later with this environment, asks for
-        from flows.server import api_auth_string, bind_temporary_servers
-
-        auth = api_auth_string(Path(os.environ["PREFECT_HOME"]))
-        os.environ["PREFECT_SERVER_API_AUTH_STRING"] = os.environ["PREFECT_API_AUTH_STRING"] = auth
-        bind_temporary_servers()   # and a kill -9 of this process ends its temporary server too
-    rank = int(os.environ.get("RANK", "0"))
-    if rank > 0:  # torchrun: each rank's temporary Prefect server keeps its own sqlite file
-        os.environ["PREFECT_HOME"] = str(Path(os.environ["PREFECT_HOME"]) / f"rank-{rank}")
-
-
-class _BadInputWithoutTraceback(logging.Filter):
-    """Prefect's engine logs a failed flow or task with its traceback. For bad input (TypError)
-    the message is the whole story, and the CLI prints it as its last line: drop the traceback."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.exc_info and isinstance(record.exc_info[1], TypError):
-            record.exc_info, record.exc_text = None, None
-        return True
-
-
-def quiet_bad_input_tracebacks() -> None:
-    """Install :class:`_BadInputWithoutTraceback` on Prefect's run loggers (once)."""
-    for name in ("prefect.flow_runs", "prefect.task_runs"):
-        logger = logging.getLogger(name)
-        if not any(isinstance(f, _BadInputWithoutTraceback) for f in logger.filters):
-            logger.addFilter(_BadInputWithoutTraceback())
-
-
-def settled_before_prefect(stage: str) -> bool:
-    """Whether ``typ run <stage>`` first tries to settle it without Prefect: a per-scene stage that
-    needs no torch (the stage registry says), whose every scene may be unchanged."""
-    from typ.registry import STAGES as REGISTERED
-
-    spec = REGISTERED[stage]
-    return spec.kind == "per-scene" and not spec.torch
 
 
 def _cmd_run(args) -> int:
-    root = Path(args.root)
-    if args.stage != "all" and args.stage not in STAGES:
-        raise TypError("typ run", "stage", f"one of {['all', *STAGES]}", args.stage)
-    from typ.config import load_config
-
-    cfg = load_config(root / args.params)  # fail on bad params before Prefect starts
-    _setup_env(root)
-    from flows.server import prefect_api, terminate_raises
-
-    # `all`: one Prefect API for every stage (a local server unless PREFECT_API_URL names one);
-    # one stage: the API the environment names, else Prefect's temporary server for this process
-    with terminate_raises(), (prefect_api(Path(os.environ["PREFECT_HOME"])) if args.stage == "all"
-                              else contextlib.nullcontext()):
-        if args.stage != "all" and args.runner == "thread" and not args.address and settled_before_prefect(args.stage):
-            from flows.common import settle_stage
-
-            # every scene unchanged: logged to MLflow, done before Prefect is even imported
-            if settle_stage(args.stage, params=args.params, root=root) is not None:
-                return 0
-        from flows.pipeline import WITHOUT_TORCH, pipeline_flow, run_stage
-
-        uses_torch = args.stage not in WITHOUT_TORCH
-        if uses_torch:  # a per-scene stage that never touches torch does not pay for importing it
-            from typ import distributed
-
-            distributed.setup(cfg.runtime.device, cfg.runtime.precision, where=cfg.source)
-        quiet_bad_input_tracebacks()
-        try:
-            if args.stage == "all":
-                pipeline_flow(params=args.params, root=str(root), task_runner=args.runner, address=args.address)
-            else:
-                run_stage(args.stage, params=args.params, root=str(root), task_runner=args.runner,
-                          address=args.address)
-        finally:
-            if uses_torch:
-                distributed.teardown()
-    return 0
+    return run_command(args.stage, params=args.params, root=Path(args.root), runner=args.runner, address=args.address)
 
 
 def _cmd_with_server(args) -> int:
-    if not args.cmd:
-        raise TypError("typ with-server", "COMMAND", "a command to run, e.g. `typ with-server dvc repro`", "nothing")
-    root = Path(args.root).resolve()
-    _setup_env(root)
-    from flows.server import prefect_api, terminate_raises
-
-    with terminate_raises(), prefect_api(Path(os.environ["PREFECT_HOME"])) as (url, server):
-        if server is not None:
-            print(f"typ: Prefect server {url} for `{' '.join(args.cmd)}` (log {server.log}, API secret in "
-                  f"{server.auth_file})", file=sys.stderr, flush=True)
-        return run_child(args.cmd)
-
-
-def run_child(cmd: list[str], *, grace: float = 60.0) -> int:
-    """Run ``cmd`` in its own process group and return its exit status (128 + signal when a
-    signal ended it). When this process is interrupted (Ctrl-C, SIGTERM), the whole group gets
-    the signal (dvc and the stage it runs), then SIGKILL after ``grace`` seconds."""
-    try:
-        proc = subprocess.Popen(cmd, start_new_session=True)
-    except OSError as exc:
-        raise TypError("typ with-server", "COMMAND", "a program on PATH", f"{cmd[0]}: {exc.strerror}") from None
-    try:
-        rc = proc.wait()
-    except BaseException as exc:
-        sig = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, sig)
-        try:
-            proc.wait(grace)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        raise
-    return 128 - rc if rc < 0 else rc
+    return with_server(args.cmd, root=Path(args.root))
 
 
 def _cmd_serve(args) -> int:
@@ -169,7 +32,7 @@ def _cmd_serve(args) -> int:
 
     root = Path(args.root).resolve()
     load_config(root / args.params)  # fail on bad params before a server starts
-    _setup_env(root)
+    setup_env(root)
     from flows.server import prefect_api, terminate_raises
 
     # SIGTERM at any moment, also while the server starts, stops the server started here
@@ -254,7 +117,7 @@ def _cmd_generate(args) -> int:
         raise TypError("typ generate", "--compose", f"one of {list(COMPOSE)}", args.compose)
     root = Path(args.root)
     check_folder(args.out, where="typ generate", field="--out")
-    _setup_env(root)
+    setup_env(root)
     from flows.generate import generate_external
 
     metrics = generate_external(args.format, Path(args.input), Path(args.out), root=root, params=args.params,
@@ -276,7 +139,7 @@ def _cmd_novel_view(args) -> int:
         frames = (int(first), int(stop))
     check_folder(args.out, where="typ novel-view", field="--out")
     root = Path(args.root)
-    _setup_env(root)
+    setup_env(root)
     from flows.novel_view import run_novel_view
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
@@ -344,7 +207,7 @@ def _cmd_edit(args) -> int:
     edit = BoxEdit(remove=tuple(args.remove), move=move, add=tuple(add))
     check_folder(args.out, where="typ edit", field="--out")
     root = Path(args.root)
-    _setup_env(root)
+    setup_env(root)
     from flows.edit import edit_scenario
 
     path, render = edit_scenario(Path(args.scenario), args.timestamp, edit, Path(args.out), root=root,

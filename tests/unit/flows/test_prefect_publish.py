@@ -45,9 +45,9 @@ def test_the_cli_environment_puts_prefects_api_handler_on_typs_loggers(tmp_path)
     out = _python("""
         import os, warnings
         from pathlib import Path
-        from cli.main import _setup_env
+        from flows.run import setup_env
         os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"] = "mine"
-        _setup_env(Path("."))
+        setup_env(Path("."))
         print(os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"])
         import logging
         import flows.generic  # a flow module imports prefect, which sets up its logging
@@ -70,9 +70,9 @@ def test_a_flows_summary_and_typ_log_reach_the_prefect_api(tmp_path):
     out = _python("""
         import logging
         from pathlib import Path
-        from cli.main import _setup_env
+        from flows.run import setup_env
         from prefect_api import api_status
-        _setup_env(Path("."))  # before Prefect is imported, as the CLI does
+        setup_env(Path("."))  # before Prefect is imported, as the CLI does
 
         from prefect import flow
         from prefect.context import FlowRunContext

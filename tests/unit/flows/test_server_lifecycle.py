@@ -327,8 +327,8 @@ def test_the_api_secret_is_made_once_owner_only_and_kept(tmp_path):
 SETUP_ENV = """
 import json, os, sys
 from pathlib import Path
-from cli.main import _setup_env
-_setup_env(Path(sys.argv[1]))
+from flows.run import setup_env
+setup_env(Path(sys.argv[1]))
 print(json.dumps({k: os.environ.get(k) for k in ("PREFECT_API_AUTH_STRING", "PREFECT_SERVER_API_AUTH_STRING")}))
 """
 
@@ -356,8 +356,8 @@ def test_the_cli_hands_the_secret_to_the_servers_it_starts_only(tmp_path):
 TELEMETRY = """
 import json, sys
 from pathlib import Path
-from cli.main import _setup_env
-_setup_env(Path(sys.argv[1]))
+from flows.run import setup_env
+setup_env(Path(sys.argv[1]))
 from mlflow.telemetry.utils import is_telemetry_disabled
 from prefect.settings import PREFECT_SERVER_ANALYTICS_ENABLED
 print(json.dumps([is_telemetry_disabled(), PREFECT_SERVER_ANALYTICS_ENABLED.value()]))
@@ -393,9 +393,9 @@ from pathlib import Path
 import psutil
 
 if __name__ == "__main__":
-    from cli.main import _setup_env
+    from flows.run import setup_env
 
-    _setup_env(Path(sys.argv[1]))
+    setup_env(Path(sys.argv[1]))
     from prefect.client.orchestration import get_client
 
     with get_client(sync_client=True) as client:
