@@ -48,12 +48,13 @@ import torch
 from tasks.fusion_batch import Inputs
 from tasks.fusion_data import FusionDataset, unavailable
 from tasks.fusion_train import Trained, load, save, train
+from tasks.scene_stage import StageResult
 from tasks.training import Trainings, one_thread
 from typ import distributed
 from typ.config import FusionConfig
 from typ.errors import TypError
 from typ.formats.opv2v import list_scenarios
-from typ.io import SCENARIO_MANIFEST, read_json_or_none, seed_dir
+from typ.io import SCENARIO_MANIFEST, read_json_or_none, seed_dir, write_json
 from typ.registry import METHODS, SINGLE_AGENT, Plot, declare
 
 #: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
@@ -465,3 +466,25 @@ def load_networks(cfg: FusionConfig, roots: Roots, out: Path) -> dict[str, list[
     file raises naming it and the stage (what an evaluating stage reads)."""
     p = plan(cfg, roots)
     return {run: [load(model_folder(out, run, seed), cfg) for seed in cfg.training_seeds] for run in p.runs}
+
+
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): every network of the benchmark trained (each a task of
+    ``trainings``), ``training.json``, the curves and the loss CSV kept with the MLflow ``run``,
+    and Table 1's oracle detectors logged as servable MLflow models; the evaluate stage scores them."""
+    from tasks.fusion_serve import ServedDetector
+
+    block = cfg.fusion
+    out = Path(root) / block.out
+    t0 = time.perf_counter()
+    bench = Benchmark(block, Roots.from_config(block, Path(root)), out, log_fn=run.metrics)
+    bench.train_all(trainings)
+    metrics = training_summary(bench, time.perf_counter() - t0)
+    write_json(out / TRAINING_JSON, metrics)
+    write_json(out / "curves.json", bench.curves())
+    loss = write_loss_curve(bench, out / "loss.csv")
+    test = bench.test_inputs()
+    for method, oracle in bench.plan.robustness.items():   # Table 1's oracle detectors, servable from MLflow
+        served = ServedDetector(bench.networks[oracle][0].as_method(method)).eval()
+        run.log_model(f"fusion-{method}", served, ServedDetector.example(method, test))
+    return StageResult(metrics, artifacts=[out / TRAINING_JSON, out / "curves.json", loss])

@@ -31,6 +31,7 @@ import torch
 from pipelines.typ import Reference
 from pipelines.typ.pipeline_typ import PointStats, TYPPipeline, generator_dir, point_statistics
 from tasks import generate, stage1, stage2
+from tasks.scene_stage import StageResult
 from tasks.stage2 import Latents, Tuples
 from tasks.voxel_data import ViewSet, load_views
 from tasks.training import Trainings
@@ -272,8 +273,15 @@ def _dummy_example(data: Inputs, encoders: Encoders, ldm, v: Variant):
     return stage2.encode(data.dummy, encoders.target_x, encoders.y, ldm, conditions=v.conditions).ego[:2]
 
 
-def run(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
-        trainings: Trainings = Trainings()) -> dict:
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): :func:`train_variants` inside its MLflow ``run``; the
+    generator's ``pipeline.json`` kept with the run."""
+    metrics = train_variants(cfg, root, log_fn=run.metrics, log_model=run.log_model, trainings=trainings)
+    return StageResult(metrics, artifacts=[generator_dir(root / cfg.selftrain.out, cfg.stage1.seed) / "pipeline.json"])
+
+
+def train_variants(cfg, root: Path, *, log_fn: Callable[[dict, int], None], log_model=None,
+                   trainings: Trainings = Trainings()) -> dict:
     """Every variant for every stage-1 replica (each reported to ``trainings`` as
     ``train-<variant>-seed<k>``), and the generator pipeline for each replica."""
     from tasks.vqvae import load_model as load_vqvae

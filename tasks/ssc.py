@@ -38,6 +38,7 @@ networks), this module (prediction, scores, the stage), :mod:`tasks.ssc_report` 
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -49,9 +50,11 @@ from models.ssc import class_argmax, class_weights, merge_max_confidence, warp_t
 from tasks.fusion_data import FusionDataset, FusionSample, unavailable
 from tasks.ssc_data import FIGURES, NETWORK, N_CLASSES, ego_map, ssc_dataset
 from tasks.ssc_train import SscNetworks, _inputs, generated_root, train_arms, train_seed, training_set
+from tasks.scene_stage import StageResult
 from tasks.training import Trainings
 from typ.config import SscConfig
 from typ.errors import TypError
+from typ.io import write_json
 from typ.metrics.intervals import bootstrap, bootstrap_figures
 from typ.metrics.ssc import SSC_CLASSES, figure_of, ssc_confusion, ssc_scores
 from typ.ssc import SSC_GRID
@@ -165,8 +168,24 @@ def ratio_interval(num: np.ndarray, den: np.ndarray, figure: str, *, n_boot: int
 # ---------------------------------------------------------------- the stage
 
 
-def run(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
-        log_fn: Callable[[dict, int | None], None] | None = None, trainings: Trainings = Trainings()) -> dict:
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): :func:`run_benchmark`, the report, and ``results.json`` /
+    ``losses.json`` beside the networks, all kept with the MLflow ``run``."""
+    from tasks import ssc_report
+
+    block = cfg.ssc
+    out = Path(root) / block.out
+    t0 = time.perf_counter()
+    results = run_benchmark(block, root, log_fn=run.metrics, trainings=trainings)
+    paths = ssc_report.write_report(results, block, Path(root) / block.reports, results["gallery"])
+    metrics = metrics_of(results, time.perf_counter() - t0)
+    write_json(out / "results.json", metrics)
+    write_json(out / "losses.json", results["losses"])
+    return StageResult(metrics, artifacts=[out / "results.json", out / "losses.json", *paths])
+
+
+def run_benchmark(block: SscConfig, root: Path, *, log: Callable[[str], None] = print,
+                  log_fn: Callable[[dict, int | None], None] | None = None, trainings: Trainings = Trainings()) -> dict:
     """Train every seed's networks (each (arm, seed) reported to ``trainings``), score Table I
     (perfect and noisy), the networks trained on generated cooperators against the oracle ones,
     and the robustness sweeps; returns the results the report and the metrics are made of."""

@@ -166,7 +166,7 @@ def test_the_ratio_interval_pairs_the_scenarios_and_is_one_for_the_same_networks
 def test_the_stage_writes_table_i_the_curves_and_the_metrics(root, tmp_path):
     block = _block(tmp_path)
     said = []
-    results = S.run(block, root, log=said.append)
+    results = S.run_benchmark(block, root, log=said.append)
     assert set(results["tables"]) == {"perfect", "noisy"}      # no generated data under this root
     assert "does not exist" in results["skipped"]["generated"] and any("generated rows" in m for m in said)
     for setting, rows in results["tables"].items():
@@ -223,7 +223,7 @@ def test_generated_cooperators_identical_to_the_true_ones_give_a_ratio_of_one(ro
                    robustness={"position_std": [0.0], "heading_std_deg": [0.0], "delay_ms": [0],
                                "quantization_bits": []})
     logged = []
-    results = S.run(block, proj, log=lambda m: None, log_fn=lambda values, step: logged.append(values))
+    results = S.run_benchmark(block, proj, log=lambda m: None, log_fn=lambda values, step: logged.append(values))
     assert sorted(k for d in logged for k in d) == [f"loss_{n}_seed0_last"
                                                     for n in ("attfuse", "early", "single", "v2xvit")]
     gen = results["tables"]["generated"]
