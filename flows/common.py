@@ -216,6 +216,9 @@ class PrefectTrainings:
     def run(self, name: str, fn: Callable[[], object]) -> object:
         return training_task(name, fn)
 
+    def step(self, name: str, fn: Callable[[], object]) -> object:
+        return plain_task(fn, name)()
+
     def started(self, name: str, future) -> None:
         if self._runner is None:
             raise RuntimeError("PrefectTrainings.started outside its `with` block")

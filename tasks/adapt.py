@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -28,8 +29,9 @@ import torch
 from models.discriminator import LatentDiscriminator
 from models.losses import commitment_loss, hinge_d_loss, hinge_g_loss
 from models.vqvae import BEVVQVAE, reconstruction_loss
-from tasks.training import (TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop,
+from tasks.training import (Trainings, TrainingDiverged, batch_rng, grad_norm, run_checkpoint_dir, run_loop,
                             seed_everything, steps_for)
+from tasks.scene_stage import StageResult
 from tasks.voxel_data import ViewSet
 from tasks.vqvae import save_model as save_vqvae
 from typ import distributed
@@ -197,3 +199,32 @@ def discriminator_accuracy(disc: LatentDiscriminator, encoder_vq: BEVVQVAE, targ
     tgt = target_views.batch(np.arange(min(n, len(target_views))))[0]
     with distributed.on_device(disc, encoder_vq, target_vq) as dev:
         return batch_accuracy(disc, target_vq, encoder_vq, tgt.to(dev), src.to(dev))
+
+
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): the source encoder/decoder adapted to the target latent
+    space (one task of ``trainings``), the translation figures before and after on training views
+    (held-out ones are the evaluate stage's), saved and logged as an MLflow model of ``run``."""
+    from tasks.voxel_data import load_views
+    from tasks.vqvae import load_model as load_vqvae
+
+    block = cfg.adapt
+    store, out = Path(root) / block.input, Path(root) / block.out
+    target_vq = load_vqvae(Path(root) / block.vqvae / "x")
+    # source scenarios are multi-agent: every agent's view is a training sample
+    src_train = load_views(store, dataset=block.source_dataset, split=block.source_split, ego_only=False)
+    tgt_train = load_views(store, dataset=block.target_dataset, split=block.target_split)
+    metrics: dict = {"source_views": len(src_train), "target_views": len(tgt_train)}
+    t0 = time.perf_counter()
+    source_vq, disc = trainings.run(f"train-source_vq-seed{block.seed}", lambda: train(
+        block, target_vq, src_train, tgt_train, out=out, log_fn=run.metrics))
+    metrics["seconds_training"] = round(time.perf_counter() - t0, 3)
+    # "before" = no adaptation, the target VQ-VAE applied to source views as they are
+    for name, encoder in (("before", target_vq), ("after", source_vq)):
+        metrics[name] = {**translation_scores(encoder, target_vq, src_train, tgt_train, n=block.eval_views),
+                         "disc_accuracy": discriminator_accuracy(disc, encoder, target_vq, src_train, tgt_train,
+                                                                 n=block.eval_views)}
+    save(source_vq, disc, out)
+    run.log_model("adapt-source-vq", source_vq, src_train.batch(np.arange(min(2, len(src_train))))[0],
+                  output="logits")
+    return StageResult(metrics)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -25,8 +26,9 @@ from models.ldm import LatentDiffusion
 from models.postprocess import postprocess
 from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
-from tasks.training import (EMA, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
+from tasks.training import (EMA, Trainings, batch_rng, diffusion_loss, grad_norm, learning_rate, noised_batch,
                             run_checkpoint_dir, run_loop, seed_everything, set_learning_rate, steps_for)
+from tasks.scene_stage import StageResult
 from tasks.voxel_data import ViewSet, load_views
 from typ import distributed
 from typ.artifacts import load_module, save_module
@@ -181,3 +183,37 @@ def save_model(model: LatentDiffusion, cfg: Stage1Config, thresholds: dict, fold
 def load_model(folder: Path) -> tuple[LatentDiffusion, dict]:
     """(the EMA model, its saved fields: ``schedule``, ``train_timesteps``, ``postprocess``)."""
     return load_module(folder, LatentDiffusion.from_config, STAGE)
+
+
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): the target ego views encoded, P(x|y) trained per replica
+    seed (each a task of ``trainings``), its post-processing thresholds tuned on the val split,
+    saved, and the first seed's network logged as an MLflow model of ``run``."""
+    from tasks.vqvae import load_model as load_vqvae
+
+    block = cfg.stage1
+    store, out = Path(root) / block.input, Path(root) / block.out
+    x_vq, y_vq = (load_vqvae(Path(root) / block.vqvae / k) for k in ("x", "y"))
+    train = train_views(block, Path(root))
+    val = load_views(store, dataset=block.dataset, split=block.val_split).head(block.eval_views)
+    metrics: dict = {"train_views": len(train), "val_views": len(val)}
+    latents, cond = trainings.step("encode", lambda: encode_views(x_vq, y_vq, train, dihedral=True))
+    check_latents(block, latents.shape[-1], cfg.source)
+    val_true, _ = val.batch(np.arange(len(val)))
+    _, val_cond = encode_views(x_vq, y_vq, val)
+    for seed in replica_seeds(block.seed, block.replicas):
+        t0 = time.perf_counter()
+        model = trainings.run(f"train-ldm-seed{seed}", lambda: train(
+            block, latents, cond, seed=seed, views=len(train), out=out, log_fn=run.metrics))
+        seconds = time.perf_counter() - t0
+        logits = trainings.step("sample-val", lambda: sample_logits(
+            model, x_vq, val_cond, cfg=block, generator=torch.Generator().manual_seed(seed + 1)))
+        thresholds = tune_thresholds(logits, val_true, block, seed)
+        save_model(model, block, thresholds, replica_dir(out, seed))
+        metrics[f"seed_{seed}"] = {"seconds_training": round(seconds, 3), "val_iou": thresholds["iou"],
+                                   "postprocess": thresholds}
+        if seed == block.seed:
+            run.log_model("stage1-ldm", model, {"z_t": model.normalize(latents[:2]),
+                                                "t": torch.tensor([0, block.train_timesteps - 1]),
+                                                "cond": model.normalize_cond(cond[:2])})
+    return StageResult(metrics, artifacts=[replica_dir(out, block.seed) / "config.json"])

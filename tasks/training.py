@@ -338,6 +338,11 @@ class Trainings:
     def run(self, name: str, fn: Callable[[], object]) -> object:
         return fn()
 
+    def step(self, name: str, fn: Callable[[], object]) -> object:
+        """A stage's other work worth its own line in the UI (encoding, validation, sampling):
+        run here; the flows' :class:`flows.common.PrefectTrainings` makes it a Prefect task run."""
+        return fn()
+
     def started(self, name: str, future) -> None:
         """``future``: a :class:`concurrent.futures.Future` of the training called ``name``."""
 

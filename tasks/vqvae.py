@@ -8,6 +8,7 @@ training finished) and
 """
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -15,7 +16,9 @@ import numpy as np
 import torch
 
 from models.vqvae import BEVVQVAE, PooledBoxMap, build_from_config
-from tasks.training import batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything, steps_for
+from tasks.scene_stage import StageResult
+from tasks.training import (Trainings, batch_rng, grad_norm, run_checkpoint_dir, run_loop, seed_everything,
+                            steps_for)
 from tasks.voxel_data import ViewSet
 from typ import distributed
 from typ.artifacts import load_module, save_module
@@ -125,3 +128,31 @@ def evaluate(model: BEVVQVAE, kind: str, views: ViewSet, *, threshold: float, ba
     scores["perplexity"] = float(torch.exp(-(p * p.log()).sum()))
     scores["views"] = len(views)
     return scores
+
+
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): the x and y VQ-VAEs trained on the target ego views (each a
+    task of ``trainings``), their reconstruction measured on the held-out split, and each logged
+    as an MLflow model of the stage's ``run``."""
+    from tasks.voxel_data import load_views
+
+    block = cfg.vqvae
+    store, out = Path(root) / block.input, Path(root) / block.out
+    train = load_views(store, dataset=block.dataset, split=block.train_split)
+    held_out = load_views(store, dataset=block.dataset, split=block.eval_split)
+    check_grid(train, block, cfg.source)
+    metrics: dict = {"train_views": len(train), "eval_views": len(held_out)}
+    for kind in KINDS:
+        t0 = time.perf_counter()
+        model = trainings.run(f"train-{kind}-seed{block.seed}",
+                              lambda: train_one(kind, block, train, out=out, log_fn=run.metrics))
+        seconds = time.perf_counter() - t0
+        if isinstance(model, PooledBoxMap):  # nothing learned: y^f is the box map averaged per cell
+            metrics[kind] = {"encoding": "pool"}
+            continue
+        scores = trainings.step(f"validate-{kind}", lambda: evaluate(model, kind, held_out, threshold=block.threshold,
+                                                                     batch_size=block.batch_size))
+        metrics[kind] = {**scores, "seconds_training": round(seconds, 3)}
+        x_example, y_example = train.batch(np.arange(min(2, len(train))))
+        run.log_model(f"vqvae-{kind}", model, x_example if kind == "x" else y_example, output="logits")
+    return StageResult(metrics, artifacts=[(out / "x" / "config.json", "x"), (out / "y" / "config.json", "y")])

@@ -562,7 +562,7 @@ def test_ddpm_stage_writes_its_table_models_and_report(project):
         assert saved["train_timesteps"] == 1000 and saved["prediction"] == "v_prediction" and read_weights(folder, "ddpm")
     text = (proj / "reports" / "ddpm.md").read_text()
     assert "Table II analogue: range image" in text and "Side by side with TYP's latent route" in text
-    assert "compare rows within typ only" in text and "## Targets" in text
+    assert "compare rows within typ only" in text and "## Against the paper" in text
     assert (proj / "reports" / "ddpm_pareto.png").stat().st_size > 10_000
     assert (proj / "reports" / "ddpm_samples.png").stat().st_size > 10_000
 

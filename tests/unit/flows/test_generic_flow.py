@@ -123,8 +123,8 @@ def test_flow_of_names_the_flow_after_the_stage_and_runs_the_task_module(monkeyp
 
 
 def test_the_runner_takes_flows_from_their_module_or_the_task_module():
-    assert pipeline._flow("vqvae").name == "vqvae" and pipeline._flow("vqvae").fn.__module__ == "flows.vqvae"
-    for name in ("simulate", "evaluate", "fusion", "ssc", "selftrain"):   # no flows/<name>.py
+    assert pipeline._flow("ddpm").name == "ddpm" and pipeline._flow("ddpm").fn.__module__ == "flows.ddpm"
+    for name in ("simulate", "vqvae", "stage1", "adapt", "evaluate", "fusion", "ssc", "selftrain"):   # no flows/<name>.py
         assert pipeline._flow(name).name == name and pipeline._flow(name).fn.__module__ == "flows.generic"
 
 
