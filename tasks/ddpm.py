@@ -20,6 +20,7 @@ sampler; generated images go back to points, which are what every metric compare
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,7 @@ from models.samplers import make_scheduler, sample
 from models.schedules import alphas_cumprod, betas
 from tasks.ddpm_data import (BevRepresentation, RangeRepresentation, Representation, Scan, data_key,  # noqa: F401
                              load_scans, pixel_set, representations, unlabelled)
+from tasks.scene_stage import StageResult
 from tasks.training import (Trainings, batch_rng, grad_norm, noised_batch, prediction_target, run_checkpoint_dir,
                             run_loop, seed_everything)
 from typ import distributed
@@ -48,6 +50,7 @@ from typ.io import atomic_path, code_digest, hash_obj, seed_dir
 from typ.registry import SAMPLERS, TARGET_VOXELS, declare
 
 STAGE = "ddpm"
+LOG = logging.getLogger(__name__)
 #: what the stage reads and writes (dvc.yaml is generated from it; kind and torch: typ.registry.STAGES)
 DECLARATION = declare("ddpm", data=("data/sim/target/train", "data/sim/target/test", f"{TARGET_VOXELS}test",
                                     "artifacts/vqvae", "artifacts/stage1"),
@@ -420,3 +423,46 @@ def context(cfg: DdpmConfig, train: list[Scan], test: list[Scan]) -> dict:
 def model_summary(trained: dict[str, TrainedModel]) -> dict:
     return {tm.name: {"seconds_training": tm.seconds_training, "trained_now": tm.trained,
                       "parameters": sum(p.numel() for p in tm.model.parameters())} for tm in trained.values()}
+
+
+def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageResult:
+    """The stage (:mod:`flows.generic`): the FRID / FPVD feature networks, every Table II row
+    (each network a task of ``trainings``), TYP's latent route side by side, the report; every
+    network logged as an MLflow model of ``run``. Data it cannot train on (no labelled scans): the
+    metrics and the report say why, and nothing is trained."""
+    from tasks import ddpm_report
+    from tasks.lidar_features import train_feature_nets
+
+    root = Path(root)
+    block = cfg.ddpm
+    out = root / block.out
+    reps = representations(block, cfg.source)
+    train, test = (trainings.step(f"scans-{split}", lambda split=split: load_scans(
+        root / block.input, domain=block.domain, split=split, ego_only=block.ego_only))
+        for split in (block.train_split, block.test_split))
+    counts = {"train_scans": len(train), "test_scans": len(test)}
+    reason = unlabelled([*train, *test], f"{block.domain}/{block.train_split} and {block.test_split}")
+    if reason is not None:
+        LOG.warning("ddpm: not run: %s", reason)
+        out.mkdir(parents=True, exist_ok=True)
+        return StageResult({"skipped": reason, **counts}, artifacts=ddpm_report.write_skipped(root / block.reports,
+                                                                                                 reason))
+    t0 = time.perf_counter()
+    nets, feature_scores = trainings.step("feature-nets", lambda: train_feature_nets(
+        block.features, block.seed, reps["range"].layout, train, test, out=out, log_fn=run.metrics))
+    run.log_model("ddpm-frid-net", nets.range_net, torch.zeros(1, 1, *reps["range"].layout.shape))
+    run.log_model("ddpm-fpvd-net", nets.voxel_net, torch.zeros(1, nets.grid.shape[2], *nets.grid.shape[:2]))
+    rows, trained, examples = table(block, reps, train, test, nets, out=out, log_fn=run.metrics, trainings=trainings)
+    for tm in trained.values():
+        c = tm.model.config
+        run.log_model(f"ddpm-{tm.name}", tm.model, {"x_t": torch.zeros(1, c["channels"], c["height"], c["width"]),
+                                                    "t": torch.tensor([0])})
+    if block.latent.samplers:
+        rows += trainings.step("latent-route", lambda: latent_route(cfg, root, nets))
+    round_trips_ = round_trips(reps, test)
+    paths = ddpm_report.write_all(root / block.reports, rows, examples, round_trips=round_trips_,
+                                  feature_scores=feature_scores, context=context(block, train, test)) \
+        if distributed.is_main() else []
+    metrics = ddpm_report.metrics_of(rows, round_trips_, feature_scores, model_summary(trained),
+                                     {**counts, "seconds_total": round(time.perf_counter() - t0, 3)})
+    return StageResult(metrics, artifacts=paths)

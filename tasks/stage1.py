@@ -194,17 +194,17 @@ def run(cfg, root: Path, *, run, trainings: Trainings = Trainings()) -> StageRes
     block = cfg.stage1
     store, out = Path(root) / block.input, Path(root) / block.out
     x_vq, y_vq = (load_vqvae(Path(root) / block.vqvae / k) for k in ("x", "y"))
-    train = train_views(block, Path(root))
+    views = train_views(block, Path(root))
     val = load_views(store, dataset=block.dataset, split=block.val_split).head(block.eval_views)
-    metrics: dict = {"train_views": len(train), "val_views": len(val)}
-    latents, cond = trainings.step("encode", lambda: encode_views(x_vq, y_vq, train, dihedral=True))
+    metrics: dict = {"train_views": len(views), "val_views": len(val)}
+    latents, cond = trainings.step("encode", lambda: encode_views(x_vq, y_vq, views, dihedral=True))
     check_latents(block, latents.shape[-1], cfg.source)
     val_true, _ = val.batch(np.arange(len(val)))
     _, val_cond = encode_views(x_vq, y_vq, val)
     for seed in replica_seeds(block.seed, block.replicas):
         t0 = time.perf_counter()
         model = trainings.run(f"train-ldm-seed{seed}", lambda: train(
-            block, latents, cond, seed=seed, views=len(train), out=out, log_fn=run.metrics))
+            block, latents, cond, seed=seed, views=len(views), out=out, log_fn=run.metrics))
         seconds = time.perf_counter() - t0
         logits = trainings.step("sample-val", lambda: sample_logits(
             model, x_vq, val_cond, cfg=block, generator=torch.Generator().manual_seed(seed + 1)))
