@@ -2,8 +2,8 @@
 
 Each stage gets ``cmd: .venv/bin/typ run <name>``; deps: its data and artifact deps, then the
 code its flow imports, transitively (imports inside functions too; the sub-packages in
-:data:`FOLDERS` as one folder dep each), so that editing a module re-runs exactly the stages that
-import it; params: ``profile``, its blocks, and ``typ/profiles.yaml``'s keys of those blocks in
+:data:`FOLDERS` as one folder dep each, and any folder whose every module it reads as that folder,
+:func:`fold`), so that editing a module re-runs exactly the stages that import it; params: ``profile``, its blocks, and ``typ/profiles.yaml``'s keys of those blocks in
 every profile that sets them; its outputs, metrics and figures. The committed dvc.yaml is this
 module's output: ``tests/unit/flows/test_dvc_yaml.py`` fails when they differ.
 """
@@ -92,11 +92,29 @@ def code_deps(stage: str, root: Path = ROOT) -> list[str]:
     :mod:`flows.generic`'s and its task module's), :data:`FOLDERS` as folders."""
     flow = f"flows.{stage}"
     starts = [flow] if module_file(flow, root) is not None else ["flows.generic", f"tasks.{stage}"]
+    files = {str(path.relative_to(root)) for path in set().union(*(closure(start, root) for start in starts))}
     out = set()
-    for path in set().union(*(closure(start, root) for start in starts)):
-        rel = str(path.relative_to(root))
+    for rel in files:
         out.add(next((f for f in FOLDERS if rel.startswith(f + "/")), rel))
-    return sorted(out)
+    return sorted(fold(out, root))
+
+
+def fold(deps: set[str], root: Path = ROOT) -> set[str]:
+    """``deps`` with every folder whose Python files are all among them written as the folder: the
+    same files hashed, one line (a package whose ``__init__`` imports every module, such as
+    ``typ/config``, is always whole)."""
+    def sources(folder: str) -> set[str]:
+        return {str(p.relative_to(root)) for p in (root / folder).rglob("*.py") if "__pycache__" not in p.parts}
+
+    files = {d for d in deps if d.endswith(".py")}
+    folders = {str(Path(d).parent) for d in files} - {"."}
+    for folder in sorted(folders, key=lambda f: f.count("/")):   # the outermost first
+        if any(folder == f or folder.startswith(f + "/") for f in deps if not f.endswith(".py")):
+            continue                                               # already inside a folder dep
+        below = sources(folder)
+        if below and below <= files | {f for f in below if any(f.startswith(d + "/") for d in deps)}:
+            deps = {d for d in deps if not (d == folder or d.startswith(folder + "/"))} | {folder}
+    return deps
 
 
 def profile_params(blocks, root: Path = ROOT) -> list[str]:

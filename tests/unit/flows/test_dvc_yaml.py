@@ -57,8 +57,7 @@ def test_a_stage_added_to_the_registry_gets_its_code_params_and_outputs(monkeypa
     built = dvcyaml.build(tmp_path)
     entry = built["stages"]["probe"]
     assert entry["cmd"] == ".venv/bin/typ run probe"
-    assert entry["deps"] == ["data/x", "flows/__init__.py", "flows/probe.py", "tasks/__init__.py", "tasks/probe.py",
-                             "typ/__init__.py", "typ/io.py"]
+    assert entry["deps"] == ["data/x", "flows", "tasks", "typ"]   # every file of each folder is read: folders
     assert entry["params"] == ["profile", "probe", "fusion", {"typ/profiles.yaml": ["tiny.probe", "paper.probe",
                                                                                    "tiny.fusion"]}]
     assert entry["outs"] == [{"artifacts/probe": {"persist": True}}, {"reports/probe.md": {"cache": False}}]
@@ -95,3 +94,16 @@ def test_the_stage_table_of_the_docs_lists_the_registry_in_order():
     rows = [line.split("|")[1].strip() for line in (ROOT / "docs" / "stages.md").read_text().splitlines()
             if line.startswith("| ") and not line.startswith(("| stage ", "|---"))]
     assert rows == [s.name for s in stages.stages()]
+
+
+def test_a_folder_is_one_dep_only_when_the_stage_reads_every_file_in_it(tmp_path):
+    """Folding changes no dependency: a folder replaces its files only when every Python file in
+    it (and below) is in the stage's closure; one unread file keeps the folder per file."""
+    for rel in ("typ/config/__init__.py", "typ/config/a.py", "typ/config/b.py", "typ/io.py", "typ/geo.py",
+                "typ/__init__.py", "typ/sim/__init__.py"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("")
+    read = {"typ/__init__.py", "typ/config/__init__.py", "typ/config/a.py", "typ/config/b.py", "typ/io.py", "typ/sim"}
+    assert dvcyaml.fold(read, tmp_path) == {"typ/__init__.py", "typ/config", "typ/io.py", "typ/sim"}   # geo.py unread
+    assert dvcyaml.fold(read | {"typ/geo.py"}, tmp_path) == {"typ"}
+    assert dvcyaml.fold(read - {"typ/config/b.py"}, tmp_path) == read - {"typ/config/b.py"}
