@@ -74,13 +74,14 @@ class RayScene:
         return self._scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))).numpy()
 
 
-def sensor_rays(spec: SensorSpec, pose: np.ndarray | None = None, start: float = 0.0) -> np.ndarray:
-    """(N, 6) float32 rays ``[origin, direction]`` of every beam of ``spec``, in its ray order.
+def sensor_rays(directions: np.ndarray, origins: np.ndarray | None, pose: np.ndarray | None = None,
+                start: float = 0.0) -> np.ndarray:
+    """(N, 6) float32 rays ``[origin, direction]`` of a sensor's beams, in its ray order.
 
-    pose: (4, 4) float64 sensor-to-world, or None for the sensor frame; start (sensor frame only):
-    each ray begins this far along its direction from its origin.
+    directions, origins: ``SensorSpec.ray_directions()`` and ``ray_origins()`` (the caller keeps them
+    to place the returns); pose: (4, 4) float64 sensor-to-world, or None for the sensor frame; start
+    (sensor frame only): each ray begins this far along its direction from its origin.
     """
-    directions, origins = spec.ray_directions(), spec.ray_origins()
     rays = np.zeros((len(directions), 6), dtype=np.float32)
     if pose is not None:
         rays[:, :3] = pose[:3, 3] if origins is None else pose[:3, 3] + origins @ pose[:3, :3].T
@@ -108,7 +109,7 @@ def cast_mesh(vertices, triangles, spec: SensorSpec, rng: np.random.Generator | 
     if len(triangles) == 0:
         return np.zeros((0, 3), dtype=np.float32)
     directions, origins = spec.ray_directions(), spec.ray_origins()
-    t = RayScene((vertices, triangles)).trace(sensor_rays(spec, start=start))
+    t = RayScene((vertices, triangles)).trace(sensor_rays(directions, origins, start=start))
     if start:
         t = t.astype(np.float64) + start
     hit = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range))
@@ -164,7 +165,7 @@ def cast(town_at_frame: TownFrame, pose: np.ndarray, spec: SensorSpec, rng: np.r
     scene, static_id, vehicle_id, keep = _scene(town_at_frame, exclude_vehicle_id)
     d_sensor = spec.ray_directions()
     o_sensor = spec.ray_origins()
-    rays = sensor_rays(spec, pose)
+    rays = sensor_rays(d_sensor, o_sensor, pose)
     t, geom, prim, normal = scene.trace(rays, "t_hit", "geometry_ids", "primitive_ids", "primitive_normals")
     idx = np.flatnonzero(np.isfinite(t) & (t <= spec.max_range) & (t >= spec.min_range))
     t = t[idx].astype(np.float64)
