@@ -3,8 +3,9 @@
 Each stage gets ``cmd: .venv/bin/typ run <name>``; deps: its data and artifact deps, then the
 code its flow imports, transitively (imports inside functions too; the sub-packages in
 :data:`FOLDERS` as one folder dep each, and any folder whose every module it reads as that folder,
-:func:`fold`), so that editing a module re-runs exactly the stages that import it; params: ``profile``, its blocks, and ``typ/profiles.yaml``'s keys of those blocks in
-every profile that sets them; its outputs, metrics and figures. The committed dvc.yaml is this
+:func:`fold`), so that editing a module re-runs exactly the stages that import it; params:
+``profile``, its blocks, and ``typ/profiles.yaml``'s keys of those blocks in every profile that
+sets them; its outputs, metrics and figures. The committed dvc.yaml is this
 module's output: ``tests/unit/flows/test_dvc_yaml.py`` fails when they differ.
 """
 from __future__ import annotations

@@ -15,7 +15,8 @@ from tasks.ddpm_metrics import METRICS, overlaps
 from typ.compare import pareto_front
 from typ.io import atomic_path, write_text
 from typ.metrics import PRESETS
-from typ.reporting import interval_cell, markdown_table
+from typ.metrics.intervals import interval_cell
+from typ.reporting import markdown_table
 
 FAST_MAX_STEPS = 50
 LABELS = {name: metric.label for name, metric in METRICS.items()}

@@ -28,9 +28,9 @@ from tasks import evaluate_generation as gen
 from tasks import genscore, realism, selftrain
 from tasks.scene_stage import StageResult
 from typ.io import write_text
-from typ.metrics.intervals import Interval
+from typ.metrics.intervals import Interval, interval_cell
 from typ.registry import METHODS, PLOTTED_GENERATION_METHODS, Plot, declare
-from typ.reporting import interval_cell, markdown_table
+from typ.reporting import markdown_table
 
 LOG = logging.getLogger(__name__)
 

@@ -14,7 +14,8 @@ from tasks.fusion_score import BANDS as SCORED_BANDS, IOU_THRESHOLDS
 from typ.config import FusionConfig
 from typ.io import atomic_path, write_text
 from typ.registry import COMPOSE_MODES, METHODS
-from typ.reporting import interval_cell, markdown_table
+from typ.metrics.intervals import interval_cell
+from typ.reporting import markdown_table
 
 #: the range bands and AP figures the scorer declares (tasks.fusion_score), with their headers
 BANDS = tuple((band, "all" if band == "overall" else band.replace("-", "–")) for band in SCORED_BANDS)

@@ -15,8 +15,8 @@ import numpy as np
 from tasks import novel_view as nvt
 from typ.io import write_json, write_text
 from typ.metrics import novel_view as nv
-from typ.metrics.intervals import Interval
-from typ.reporting import interval_cell, markdown_table
+from typ.metrics.intervals import Interval, interval_cell
+from typ.reporting import markdown_table
 
 JSON_NAME, REPORT_NAME = "novel_view.json", "novel_view.md"
 #: the report's main table: (metric, header)

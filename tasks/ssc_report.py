@@ -11,7 +11,8 @@ from tasks.ssc_data import DISPLAY, FOOTPRINT_CELLS, N_CLASSES, NETWORK
 from typ.config import SscConfig
 from typ.io import atomic_path, write_text
 from typ.metrics.ssc import FIGURES as SSC_FIGURES, SSC_CLASSES
-from typ.reporting import interval_cell, markdown_table
+from typ.metrics.intervals import interval_cell
+from typ.reporting import markdown_table
 
 #: Table I's columns: (figure, header), the figures typ.metrics.ssc declares with a header
 COLUMNS = tuple((figure, header) for figure, header in SSC_FIGURES.items() if header)

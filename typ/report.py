@@ -13,7 +13,8 @@ from pathlib import Path
 from typ.config import FUSION_METHODS, Config
 from typ.io import write_text
 from typ.registry import METHODS
-from typ.reporting import interval_cell, markdown_table
+from typ.metrics.intervals import interval_cell
+from typ.reporting import markdown_table
 from typ.tracking import stage_seconds
 
 #: ``evaluate``'s generation rows, as the generation report names them

@@ -13,6 +13,7 @@ seeds are resampled, then each drawn seed's samples and the reference samples.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -38,10 +39,41 @@ class Interval:
         return {"value": self.value, "low": self.low, "high": self.high}
 
     def text(self, digits: int = 3) -> str:
-        """``value [low, high]`` (:func:`typ.reporting.interval_cell`, the one way reports print it)."""
-        from typ.reporting import interval_cell
-
+        """``value [low, high]`` (:func:`interval_cell`, the one way reports print it)."""
         return interval_cell(self, digits)
+
+
+#: a figure that does not exist (not finite)
+NOT_A_NUMBER = "–"
+
+
+def interval_cell(cell, digits: int = 3, *, scale: float = 1.0, missing: str = "–", adaptive: bool = False) -> str:
+    """A figure with its bootstrap interval as a report cell: ``value [low, high]`` to ``digits``.
+
+    cell: an :class:`Interval`, its dict (``{"value", "low", "high"}``, as the
+    metrics JSON holds it) or a ``(value, low, high)`` tuple, each multiplied by ``scale``; None
+    (the figure does not apply) gives ``missing``, a value that is not finite ``–``, bounds that are
+    absent or not finite the value alone. adaptive: 5 digits for a value under 0.01 (but not 0), so
+    that small figures keep their digits.
+    """
+    if cell is None:
+        return missing
+    if isinstance(cell, dict):
+        value, low, high = cell.get("value"), cell.get("low"), cell.get("high")
+    elif isinstance(cell, tuple):
+        value, low, high = cell
+    else:
+        value, low, high = cell.value, cell.low, cell.high
+    if value is None:
+        return missing
+    value = value * scale
+    if not math.isfinite(value):
+        return NOT_A_NUMBER
+    if adaptive and value != 0 and abs(value) < 0.01:
+        digits = 5
+    if low is None or high is None or not (math.isfinite(low * scale) and math.isfinite(high * scale)):
+        return f"{value:.{digits}f}"
+    return f"{value:.{digits}f} [{low * scale:.{digits}f}, {high * scale:.{digits}f}]"
 
 
 METHODS = ("percentile", "basic", "recentred")

@@ -37,7 +37,7 @@ def test_one_interval_cell_for_every_report():
     """Every report prints a figure with its interval through interval_cell: the metrics JSON's
     dict, an Interval and a (value, low, high) tuple alike; scaled; None and non-finite named."""
     from typ.metrics.intervals import Interval
-    from typ.reporting import interval_cell
+    from typ.metrics.intervals import interval_cell
 
     d = {"value": 0.5361, "low": 0.5149, "high": 0.5572}
     assert interval_cell(d) == interval_cell(Interval(0.5361, 0.5149, 0.5572)) == interval_cell((0.5361, 0.5149, 0.5572)) \
