@@ -311,28 +311,15 @@ def _():
 
 @kind("compose mode")
 def _():
-    import torch
-    from models.adapter import ZeroAdapter
-    from models.ldm import LatentDiffusion
-    from models.vqvae import BEVVQVAE, PooledBoxMap
-    from pipelines.typ import TYPPipeline, reference_at
-    from pipelines.typ.pipeline_typ import PointStats
+    import dataclasses
+
+    from pipelines.typ import reference_at
+    from tiny_pipeline import TINY_GRID as grid, tiny_pipeline   # tests/helpers, on the copy's modules
     from typ.resim import coverage_mask, in_mask
     from typ.sim import simulate_scenario
     from typ.geometry import pose_to_matrix
-    from typ.voxel import Grid
 
-    torch.manual_seed(0)
-    grid = Grid((-12.8, 12.8), (-12.8, 12.8), (-0.75, 3.25), (32, 32, 8))
-    x_vq = BEVVQVAE(in_channels=8, latent_channels=4, block_out_channels=(8, 16), num_codes=32, norm_num_groups=4)
-    x_vq(torch.rand(2, 8, 32, 32).round())
-    unet = LatentDiffusion(latent_channels=4, cond_channels=1, sample_size=16, block_out_channels=(16, 16),
-                           norm_num_groups=8, cross_attention_dim=8, self_attention=False, coordinates=True,
-                           prediction="sample")
-    stats = PointStats((0.0, 10.0, 1e9), ((0.5, 0.5), (1.0,)), (tuple(np.linspace(0, 0.5, 21)), (0.2,) * 21))
-    pipe = TYPPipeline(x_vq.eval(), PooledBoxMap(downsample=2), unet.eval(), ZeroAdapter(latent_channels=4,
-                       channels=(16, 16)).eval(), grid, "linear", 1000, "dpmsolver++", 3,
-                       {"low": 0.4, "high": 0.6, "noise_std": 0.0}, stats)
+    pipe = dataclasses.replace(tiny_pipeline(), thresholds={"low": 0.4, "high": 0.6, "noise_std": 0.0})
     ego = simulate_scenario(domain="target", seed=2, n_frames=1, n_agents=1)[0].ego
     g = grid.for_sensor(2.2)
     ref = reference_at(ego, ego.pose @ pose_to_matrix([8.0, -2.0, 0.0, 0.0, 150.0, 0.0]), "rsu", None, g)
@@ -397,7 +384,8 @@ def extended(tmp_path_factory) -> tuple[dict, dict]:
             cloud = np.c_[rng.uniform(-20, 20, (500, 2)), rng.uniform(-1.6, 0.5, 500), rng.uniform(0, 1, 500)]
             np.save(drives / drive / f"{frame:06d}.npy", cloud.astype(np.float32))
     done = subprocess.run([sys.executable, "-c", CONSUMERS, str(copy), str(drives)], cwd=copy, capture_output=True,
-                          text=True, timeout=600, env={**__import__("os").environ, "PYTHONPATH": str(copy)})
+                          text=True, timeout=600, env={**__import__("os").environ,
+                                                       "PYTHONPATH": f"{copy}:{ROOT / 'tests' / 'helpers'}"})
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1]), touched
 
